@@ -1,0 +1,90 @@
+"""Input checks at the API boundary: shapes, dimensions and finiteness, with clear messages.
+
+Shape checks run at trace time, so they also fire under ``jax.jit`` and ``jax.vmap``. Value checks
+(NaN/inf) need concrete arrays and are skipped for tracers: inside a user's ``jit`` the caller owns
+them.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def is_concrete(*xs) -> bool:
+    """True if no argument is a tracer (we are not inside jit/vmap/grad)."""
+    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(xs))
+
+
+def check_finite(name: str, x) -> None:
+    """Raise ValueError naming the first non-finite entry of ``x``; no-op for tracers."""
+    if not is_concrete(x):
+        return
+    arr = np.asarray(x)
+    if not np.issubdtype(arr.dtype, np.floating):
+        return
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        idx = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise ValueError(f"{name} has {int(bad.sum())} non-finite value(s); first at index {idx}: "
+                         f"{arr[idx]!r}")
+
+
+def check_filter_inputs(obs, ensemble, model, *, name: str = "filter") -> tuple[int, int, int, int]:
+    """Check ``obs (K, m)`` and ``ensemble (N, d)`` against ``model``; return ``(K, m, N, d)``."""
+    obs = jnp.asarray(obs)
+    ensemble = jnp.asarray(ensemble)
+    if obs.ndim != 2:
+        raise ValueError(f"{name}: obs must have shape (K, m) = (steps, obs_dim), got {obs.shape}; "
+                         f"use jax.vmap for batches of runs")
+    if ensemble.ndim != 2:
+        raise ValueError(f"{name}: ensemble must have shape (N, d) = (particles, dim), got "
+                         f"{ensemble.shape}; use jax.vmap for batches of runs")
+    K, m = obs.shape
+    N, d = ensemble.shape
+    if d != model.dim:
+        raise ValueError(f"{name}: ensemble has dimension d={d} but model {model.name!r} has "
+                         f"dim={model.dim}")
+    if m != model.obs_dim:
+        raise ValueError(f"{name}: obs has dimension m={m} but model {model.name!r} has "
+                         f"obs_dim={model.obs_dim}")
+    if K < 1:
+        raise ValueError(f"{name}: obs must hold at least one step, got shape {obs.shape}")
+    if N < 2:
+        raise ValueError(f"{name}: ensemble needs at least 2 particles, got N={N}")
+    for label, x in (("obs", obs), ("ensemble", ensemble)):
+        if not jnp.issubdtype(x.dtype, jnp.floating):
+            raise TypeError(f"{name}: {label} must be a floating array, got dtype {x.dtype}")
+        check_finite(f"{name}: {label}", x)
+    return K, m, N, d
+
+
+def check_key(key, name: str = "filter") -> None:
+    """Require a JAX PRNG key (typed ``jax.random.key`` or legacy uint32 ``(2,)``)."""
+    if key is None:
+        raise TypeError(f"{name}: key= is required (e.g. key=jax.random.key(0)); "
+                        f"there is no global RNG")
+    if jnp.issubdtype(jnp.asarray(key).dtype if not hasattr(key, "dtype") else key.dtype,
+                      jax.dtypes.prng_key):
+        if jnp.shape(key) != ():
+            raise ValueError(f"{name}: key must be a single key, got shape {jnp.shape(key)}")
+        return
+    if jnp.shape(key) != (2,) or jnp.asarray(key).dtype != jnp.uint32:
+        raise TypeError(f"{name}: key must be a jax.random.key, got {type(key).__name__} with "
+                        f"shape {jnp.shape(key)}")
+
+
+def check_result_finite(name: str, result) -> None:
+    """After a concrete run: raise FloatingPointError at the first step whose mean is non-finite."""
+    if not is_concrete(result.mean):
+        return
+    mean = np.asarray(result.mean)
+    bad = ~np.isfinite(mean).all(axis=-1)
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise FloatingPointError(
+            f"{name}: the filtered mean became non-finite at step {k + 1} of {mean.shape[0]} "
+            f"(the ensemble diverged). Check the model's drift for blow-up and, for CSF, use the "
+            f"stable guidance (GuidanceConfig(mode='clipped')); pass check_finite=False to get the "
+            f"raw result instead.")

@@ -1,0 +1,10 @@
+"""Filters, each one jitted ``lax.scan`` over time returning a ``FilterResult``."""
+
+from csf_jax.filters.csf import CSFConfig, csf_filter, posterior_sample
+from csf_jax.filters.enkf import ensemble_kalman_filter
+from csf_jax.filters.kalman import kalman_filter
+from csf_jax.filters.pf import particle_filter, systematic_resample
+from csf_jax.filters.result import FilterResult
+
+__all__ = ["CSFConfig", "FilterResult", "csf_filter", "ensemble_kalman_filter", "kalman_filter",
+           "particle_filter", "posterior_sample", "systematic_resample"]

@@ -1,0 +1,58 @@
+"""The variance-exploding SDE of the score-SDE papers (Song et al. 2021), with sigma_max = 25.
+
+Forward SDE ``dx = g(t) dw`` with ``g(t) = s^t``, ``s = sigma_max``, so that
+``x_t | x_0 ~ N(x_0, sigma_t^2 I)`` with ``sigma_t^2 = (s^(2t) - 1) / (2 ln s)`` (alpha_t = 1).
+At t = 1, sigma_1 = 9.845 for s = 25: the reverse process starts from N(0, sigma_1^2 I), not N(0, I).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+
+SIGMA_MAX = 25.0
+
+
+def marginal_std(t, sigma_max: float = SIGMA_MAX):
+    """Std of ``x_t | x_0``: ``sqrt((s^(2t) - 1) / (2 ln s))``. ``t``: any shape, in [0, 1]."""
+    log_s = jnp.log(sigma_max)
+    return jnp.sqrt(jnp.expm1(2.0 * t * log_s) / (2.0 * log_s))
+
+
+def diffusion_sq(t, sigma_max: float = SIGMA_MAX):
+    """``g(t)^2 = s^(2t)``, the squared diffusion coefficient; ``d sigma_t^2 / dt``."""
+    return jnp.exp(2.0 * t * jnp.log(sigma_max))
+
+
+def perturb(x0, z, t, sigma_max: float = SIGMA_MAX):
+    """A draw of ``x_t | x_0``: ``x0 + sigma_t z``. ``x0, z: (..., d)``, ``t`` broadcastable to ``(...)``."""
+    return x0 + marginal_std(t, sigma_max)[..., None] * z
+
+
+def tweedie(x, score, t, sigma_max: float = SIGMA_MAX):
+    """Tweedie's posterior-mean estimate ``E[x_0 | x_t] = x_t + sigma_t^2 score`` (alpha_t = 1)."""
+    return x + marginal_std(t, sigma_max) ** 2 * score
+
+
+class ReverseGrid(NamedTuple):
+    """The reverse-time grid of the Euler-Maruyama sampler.
+
+    times: (L,) from ``t_max`` down to ``t_min`` (``linspace(1, 1e-3, L)`` by default).
+    dt: (L,) positive step length used at each time.
+    """
+
+    times: jnp.ndarray
+    dt: jnp.ndarray
+
+
+def reverse_grid(num_steps: int, t_max: float = 1.0, t_min: float = 1e-3) -> ReverseGrid:
+    """``times = linspace(t_max, t_min, L)``; each step integrates over ``dt = t_l - t_{l+1}``.
+
+    The last step, at ``t_min``, uses the same ``dt`` as the others, so the sampler ends at t ~= 0.
+    """
+    if num_steps < 2:
+        raise ValueError(f"reverse_grid needs num_steps >= 2, got {num_steps}")
+    times = jnp.linspace(t_max, t_min, num_steps)
+    step = (t_max - t_min) / (num_steps - 1)
+    return ReverseGrid(times=times, dt=jnp.full((num_steps,), step, dtype=times.dtype))

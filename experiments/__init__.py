@@ -1,0 +1,1 @@
+"""User commands: ``python -m experiments.run <problem>``, ``python -m experiments.guidance_study``."""

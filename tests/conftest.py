@@ -1,0 +1,116 @@
+"""Shared fixtures: float64 mode and a linear-Gaussian problem with its exact Kalman solution."""
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from csf_jax.filters.kalman import kalman_filter
+from csf_jax.filters.result import FilterResult
+from csf_jax.problems.linear import LinearGaussian, linear_gaussian, to_model
+from csf_jax.ssm import StateSpaceModel, propagate
+
+
+def simulate_linear(lg: LinearGaussian, seed: int) -> np.ndarray:
+    """Observations ``(K, m)`` of a truth drawn from ``lg``, in plain float64 numpy.
+
+    Numpy rather than ``csf_jax.ssm.simulate`` keeps the tests free of extra compilations (the
+    filters do not care where the data come from) and works in either precision mode.
+    """
+    rng = np.random.default_rng(seed)
+    x = lg.m0 + lg.p0_std * rng.standard_normal(lg.dim)
+    obs = []
+    for _ in range(lg.num_steps):
+        x = lg.A @ x + lg.q_std * rng.standard_normal(lg.dim)
+        obs.append(lg.H @ x + lg.r_std * rng.standard_normal(lg.obs_dim))
+    return np.array(obs)
+
+
+@pytest.fixture
+def linear_obs():
+    """``simulate_linear`` as a fixture: ``linear_obs(lg, seed) -> obs (K, m)`` numpy float64."""
+    return simulate_linear
+
+
+@pytest.fixture
+def x64():
+    """Run the test with ``jax_enable_x64`` on; restore the previous setting afterwards."""
+    previous = jax.config.read("jax_enable_x64")
+    jax.config.update("jax_enable_x64", True)
+    yield
+    jax.config.update("jax_enable_x64", previous)
+
+
+class Errors(NamedTuple):
+    """Distance of a filter from the Kalman filter over all steps and coordinates.
+
+    Mean errors are in units of the Kalman posterior std; std errors are relative.
+    """
+
+    mean_rms: float
+    mean_max: float
+    std_rms: float
+    std_max: float
+
+
+class LinearCase(NamedTuple):
+    """A simulated linear-Gaussian run with its Kalman reference.
+
+    obs: (K, m).  ensemble: (N, d) initial ensemble.  kalman: the exact FilterResult.
+    prior_mean: (K, d) mean of the initial ensemble only propagated (observations ignored), or
+      None when not asked for.
+    """
+
+    lg: LinearGaussian
+    model: StateSpaceModel
+    obs: jax.Array
+    ensemble: jax.Array
+    kalman: FilterResult
+    prior_mean: jax.Array | None
+
+    def errors(self, mean, std=None) -> Errors:
+        """``Errors`` of a filter's ``mean (K, d)`` and ``std (K, d)`` (default: Kalman's std)."""
+        z = (mean - self.kalman.mean) / self.kalman.std
+        s = (self.kalman.std if std is None else std) / self.kalman.std - 1.0
+        return Errors(_rms(z), float(jnp.abs(z).max()), _rms(s), float(jnp.abs(s).max()))
+
+
+def _rms(x) -> float:
+    return float(jnp.sqrt(jnp.mean(jnp.square(x))))
+
+
+def _prior_only_mean(model: StateSpaceModel, ensemble, num_steps: int, key):
+    """``(K, d)`` means of an ensemble that is only propagated: a 'filter' that ignores ``obs``."""
+
+    def step(ens, k):
+        ens = propagate(model, k, ens)
+        return ens, ens.mean(axis=0)
+
+    _, means = jax.lax.scan(step, ensemble, jax.random.split(key, num_steps))
+    return means
+
+
+def make_linear_case(obs_dim: int, num_particles: int, seed: int = 0,
+                     with_prior: bool = False) -> LinearCase:
+    """d = 2, K = 20 (default ``linear_gaussian``); everything from fixed seeds."""
+    lg = linear_gaussian(dim=2, obs_dim=obs_dim, num_steps=20)
+    model = to_model(lg)
+    obs = jnp.asarray(simulate_linear(lg, seed))
+    ensemble = model.initial_ensemble(jax.random.key(100 + seed), num_particles)
+    prior = (_prior_only_mean(model, ensemble, obs.shape[0], jax.random.key(200 + seed))
+             if with_prior else None)
+    return LinearCase(lg, model, obs, ensemble, kalman_filter(obs, lg=lg), prior)
+
+
+@pytest.fixture(params=[1, 2], ids=["m1", "m2"])
+def linear_case(request, x64) -> LinearCase:
+    """d = 2 linear-Gaussian case, N = 20000, observing the first or both coordinates; float64."""
+    return make_linear_case(request.param, 20000, with_prior=True)
+
+
+@pytest.fixture
+def small_case(x64) -> LinearCase:
+    """d = 2, m = 2 linear-Gaussian case with N = 200 for API tests (jit, vmap, keys); float64."""
+    return make_linear_case(2, 200)
