@@ -4,6 +4,7 @@ Entry points:
   ``csf_jax.filter(params, obs, ensemble, *, problem=..., key=...)``: the CSF online stage.
   ``csf_jax.simulate(problem, key)``: truth and observations of a ``StateSpaceModel``.
   ``csf_jax.problems.get(name)``: the paper's problems.
+  ``csf_jax.load_pretrained(name)``: the shipped trained prior of a problem.
   ``csf_jax.particle_filter`` / ``csf_jax.ensemble_kalman_filter`` / ``csf_jax.kalman_filter``.
 """
 
@@ -15,6 +16,7 @@ from csf_jax.guidance import GuidanceConfig
 from csf_jax.metrics import rmse
 from csf_jax.networks import NetworkConfig, init_params
 from csf_jax.prior import PriorScore, exact_mixture_prior, learned_prior
+from csf_jax.pretrained import load_pretrained
 from csf_jax.ssm import (ObservationNoise, StateSpaceModel, cauchy_noise, gaussian_noise,
                          log_likelihood, propagate, simulate)
 
@@ -23,5 +25,5 @@ __version__ = "0.1.0"
 __all__ = ["CSFConfig", "FilterResult", "GuidanceConfig", "NetworkConfig", "ObservationNoise",
            "PriorScore", "StateSpaceModel", "cauchy_noise", "ensemble_kalman_filter",
            "exact_mixture_prior", "filter", "gaussian_noise", "init_params", "kalman_filter",
-           "learned_prior", "log_likelihood", "metrics", "particle_filter", "problems",
+           "learned_prior", "load_pretrained", "log_likelihood", "metrics", "particle_filter", "problems",
            "propagate", "rmse", "simulate"]

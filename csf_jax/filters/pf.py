@@ -8,6 +8,7 @@ effective sample size, then resamples systematically to an equally weighted ense
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -72,16 +73,35 @@ def effective_sample_size(log_weights):
     return jnp.exp(-logsumexp(2.0 * log_weights))
 
 
-def _pf_step(model: StateSpaceModel, return_ensembles: bool, ensemble, key, y):
-    """One SIR step on ``ensemble (N, d)`` with observation ``y (m,)``."""
+class SIRStep(NamedTuple):
+    """One SIR step: ``prior (N, d)`` propagated particles, their normalised ``log_weights (N,)``,
+    and the resampled, equally weighted ``posterior (N, d)``."""
+
+    prior: jax.Array
+    log_weights: jax.Array
+    posterior: jax.Array
+
+
+def sir_step(problem: StateSpaceModel, key, ensemble, y) -> SIRStep:
+    """Propagate ``ensemble (N, d)``, weight by the likelihood of ``y (m,)``, resample.
+
+    Shared by the particle filter and the offline stage's dataset generation (which records
+    ``prior``).
+    """
     k_prop, k_res = jax.random.split(key)
-    particles = propagate(model, k_prop, ensemble).astype(ensemble.dtype)
-    log_w = jax.vmap(lambda x: log_likelihood(model, y, x))(particles)
+    particles = propagate(problem, k_prop, ensemble).astype(ensemble.dtype)
+    log_w = jax.vmap(lambda x: log_likelihood(problem, y, x))(particles)
     log_w = log_w - logsumexp(log_w)
-    mean, std = weighted_moments(particles, log_w)
-    ess = effective_sample_size(log_w)
-    resampled = particles[systematic_resample(k_res, log_w)]
-    return resampled, (mean, std, resampled if return_ensembles else None, ess)
+    return SIRStep(particles, log_w, particles[systematic_resample(k_res, log_w)])
+
+
+def _pf_step(model: StateSpaceModel, return_ensembles: bool, ensemble, key, y):
+    """One SIR step on ``ensemble (N, d)`` with observation ``y (m,)``, with its outputs."""
+    step = sir_step(model, key, ensemble, y)
+    mean, std = weighted_moments(step.prior, step.log_weights)
+    ess = effective_sample_size(step.log_weights)
+    out = (mean, std, step.posterior if return_ensembles else None, ess)
+    return step.posterior, out
 
 
 @functools.partial(jax.jit, static_argnames=("problem", "return_ensembles"))

@@ -1,0 +1,175 @@
+"""Prior-ensemble datasets from particle-filter rollouts (paper Sec. 2.1, the offline stage).
+
+A SIR filter with N particles runs over M independent simulated trajectories; at every step the
+propagated (prior) ensemble is a training example. Raw, the 20-D set is M x K x N x d = 2000 x 200 x
+1000 x 20 floats (32 GB), so we keep, per recorded ensemble, ``keep`` particles drawn uniformly
+without replacement, every ``stride``-th step, in float16, in a memory-mapped ``.npy`` on disk:
+
+    double_well  1000 traj x 100 steps x 256 x 1  -> 51 MB
+    cauchy       1000 traj x 100 steps x 256 x 5  -> 256 MB   (stride 2)
+    cubic10      2000 traj x 100 steps x 128 x 10 -> 512 MB   (stride 2)
+    cubic20      2000 traj x 100 steps x 128 x 20 -> 1.0 GB   (stride 2)
+
+Generation is jitted and vmapped over a chunk of trajectories; RAM holds one chunk. Each finished
+chunk is flushed and recorded in ``meta.json``, so an interrupted generation resumes at the next
+chunk. Training reads random ensembles through the memory map (RAM stays small).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import sys
+import time
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from csf_jax import problems
+from csf_jax.filters.pf import sir_step
+from csf_jax.ssm import simulate
+
+
+@dataclasses.dataclass(frozen=True)
+class DatasetConfig:
+    """What to record. Defaults follow the paper for the wells (M = 1000, N = 1000).
+
+    trajectories: M.  particles: N of the recording PF.  keep: particles stored per ensemble.
+    stride: record every stride-th step.  seed: data seed.  chunk: trajectories per jitted batch.
+    """
+
+    trajectories: int = 1000
+    particles: int = 1000
+    keep: int = 256
+    stride: int = 1
+    seed: int = 0
+    chunk: int = 50
+
+    def __post_init__(self):
+        for f in ("trajectories", "particles", "keep", "stride", "chunk"):
+            if getattr(self, f) < 1:
+                raise ValueError(f"DatasetConfig.{f} must be >= 1, got {getattr(self, f)}")
+        if self.keep > self.particles:
+            raise ValueError(f"DatasetConfig.keep ({self.keep}) cannot exceed particles "
+                             f"({self.particles})")
+
+
+def dataset_id(problem: str, config: DatasetConfig) -> str:
+    """A short hash naming the data: problem config + dataset config."""
+    text = json.dumps({"problem": problem, "problem_config": repr(problems.config(problem)),
+                       "dataset": dataclasses.asdict(config)}, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+def rollout_priors(model, key, num_particles: int, keep: int, stride: int):
+    """One PF rollout on a fresh simulated trajectory; returns ``(S, keep, d)`` prior subsets."""
+    k_sim, k_init, k_pf, k_sub = jax.random.split(key, 4)
+    _, obs = simulate(model, k_sim)
+    ensemble = model.initial_ensemble(k_init, num_particles)
+
+    def step(ens, inputs):
+        y, k_step, k_keep = inputs
+        out = sir_step(model, k_step, ens, y)
+        idx = jax.random.choice(k_keep, num_particles, (keep,), replace=False)
+        return out.posterior, out.prior[idx]
+
+    K = obs.shape[0]
+    inputs = (obs, jax.random.split(k_pf, K), jax.random.split(k_sub, K))
+    _, priors = jax.lax.scan(step, ensemble, inputs)
+    return priors[stride - 1::stride]
+
+
+def generate(problem: str, config: DatasetConfig, directory: str, *, verbose: bool = True) -> str:
+    """Write (or finish) the dataset of ``problem`` under ``directory``; returns the .npy path.
+
+    Resumable: chunks recorded as done in ``meta.json`` are skipped.
+    """
+    model = problems.get(problem)
+    os.makedirs(directory, exist_ok=True)
+    path = os.path.join(directory, "ensembles.npy")
+    meta_path = os.path.join(directory, "meta.json")
+    ident = dataset_id(problem, config)
+    steps = len(range(config.stride - 1, model.num_steps, config.stride))
+    shape = (config.trajectories, steps, config.keep, model.dim)
+    meta = {"problem": problem, "dataset": dataclasses.asdict(config), "id": ident,
+            "shape": list(shape), "chunks_done": 0}
+    if os.path.exists(meta_path) and os.path.exists(path):
+        with open(meta_path) as f:
+            old = json.load(f)
+        if old.get("id") != ident:
+            raise ValueError(f"{directory} holds dataset {old.get('id')} ({old.get('problem')}, "
+                             f"{old.get('dataset')}), not {ident} ({problem}, "
+                             f"{dataclasses.asdict(config)}); use another directory")
+        meta = old
+        data = np.lib.format.open_memmap(path, mode="r+")
+    else:
+        data = np.lib.format.open_memmap(path, mode="w+", dtype=np.float16, shape=shape)
+    n_chunks = -(-config.trajectories // config.chunk)
+    batch = jax.jit(jax.vmap(lambda k: rollout_priors(model, k, config.particles, config.keep,
+                                                      config.stride)))
+    keys = jax.random.split(jax.random.key(config.seed), config.trajectories)
+    t0 = time.perf_counter()
+    for c in range(meta["chunks_done"], n_chunks):
+        lo, hi = c * config.chunk, min((c + 1) * config.chunk, config.trajectories)
+        ks = keys[lo:hi]
+        if hi - lo < config.chunk:  # pad the last chunk to keep one compiled shape
+            ks = jnp.concatenate([ks, keys[: config.chunk - (hi - lo)]])
+        data[lo:hi] = np.asarray(batch(ks)[: hi - lo], dtype=np.float16)
+        data.flush()
+        meta["chunks_done"] = c + 1
+        _atomic_json(meta_path, meta)
+        if verbose:
+            print(f"\r[data {problem}] {hi}/{config.trajectories} trajectories "
+                  f"({(c + 1) / n_chunks:.0%}, {time.perf_counter() - t0:.0f} s)", end="",
+                  file=sys.stderr, flush=True)
+    if verbose:
+        print(file=sys.stderr)
+    return path
+
+
+def _atomic_json(path: str, obj) -> None:
+    tmp = path + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(obj, f, indent=1)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+class Dataset(NamedTuple):
+    """A memory-mapped dataset: ``ensembles (M, S, keep, d)`` float16, its id and split."""
+
+    ensembles: np.ndarray
+    id: str
+    train: np.ndarray  # trajectory indices used for training
+    valid: np.ndarray  # held-out trajectory indices
+
+
+def load(directory: str, valid_fraction: float = 0.05) -> Dataset:
+    """Open a finished dataset read-only; hold out the last ``valid_fraction`` of trajectories."""
+    with open(os.path.join(directory, "meta.json")) as f:
+        meta = json.load(f)
+    M = meta["shape"][0]
+    n_chunks = -(-M // meta["dataset"]["chunk"])
+    if meta["chunks_done"] < n_chunks:
+        raise ValueError(f"dataset {directory} is incomplete ({meta['chunks_done']}/{n_chunks} "
+                         f"chunks); run the generation again to finish it")
+    arr = np.load(os.path.join(directory, "ensembles.npy"), mmap_mode="r")
+    n_valid = max(1, int(round(valid_fraction * M)))
+    idx = np.arange(M)
+    return Dataset(arr, meta["id"], idx[:-n_valid], idx[-n_valid:])
+
+
+def sample_batch(data: Dataset, rng: np.random.Generator, batch: int, split: str = "train"):
+    """``(batch, keep, d)`` float32 ensembles at random (trajectory, step) of a split."""
+    trajs = data.train if split == "train" else data.valid
+    t = rng.choice(trajs, batch)
+    s = rng.integers(0, data.ensembles.shape[1], batch)
+    order = np.argsort(t * data.ensembles.shape[1] + s)  # sorted reads from the memory map
+    out = np.empty((batch,) + data.ensembles.shape[2:], np.float32)
+    out[order] = data.ensembles[t[order], s[order]]
+    return out
