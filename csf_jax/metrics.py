@@ -31,3 +31,15 @@ def rmse_over_time(estimate, truth):
     """RMSE at each step, over runs: ``(..., K, d) -> (K,)``."""
     err = jnp.sum((jnp.asarray(estimate) - jnp.asarray(truth)) ** 2, axis=-1)
     return jnp.sqrt(jnp.mean(err.reshape(-1, err.shape[-1]), axis=0))
+
+
+def wasserstein_1d(a, b, num_quantiles: int = 512):
+    """1-D Wasserstein-1 distance per coordinate between samples ``a (n, d)`` and ``b (m, d)``.
+
+    ``W1 = int_0^1 |F_a^-1(u) - F_b^-1(u)| du``, on a midpoint grid of ``num_quantiles`` levels.
+    Returns ``(d,)``.
+    """
+    u = (jnp.arange(num_quantiles) + 0.5) / num_quantiles
+    qa = jnp.quantile(jnp.asarray(a), u, axis=0)
+    qb = jnp.quantile(jnp.asarray(b), u, axis=0)
+    return jnp.mean(jnp.abs(qa - qb), axis=0)

@@ -13,6 +13,7 @@ every reverse step. Two sources:
 
 from __future__ import annotations
 
+import functools
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -23,7 +24,8 @@ from csf_jax.sde import marginal_std
 
 
 class PriorScore(NamedTuple):
-    """A prior-score source; hashable, so filters take it as a static argument.
+    """A prior-score source; hashable, so filters take it as a static argument. The constructors
+    below are cached: equal arguments give the same object, so jit caches are reused.
 
     condition: ``(params, centers (N, d), ensemble (N, d), process_std) -> context`` (a pytree),
       once per filter step. ``centers`` are ``f(x_i)``, ``ensemble`` is ``f(x_i) + v_i``.
@@ -53,6 +55,7 @@ def mixture_score(x, centers, variance):
     return (resp @ centers - x) / variance
 
 
+@functools.lru_cache(maxsize=None)
 def exact_mixture_prior(sigma_max: float = 25.0) -> PriorScore:
     """The exact VE-diffused score of the propagated ensemble as a Gaussian mixture."""
 
@@ -67,6 +70,7 @@ def exact_mixture_prior(sigma_max: float = 25.0) -> PriorScore:
     return PriorScore("exact_mixture", condition, score)
 
 
+@functools.lru_cache(maxsize=None)
 def learned_prior(config: networks.NetworkConfig = networks.NetworkConfig()) -> PriorScore:
     """The conditional score net ``s(x, t; c)`` with ``c`` the set encoder's code of the ensemble."""
 
@@ -78,3 +82,21 @@ def learned_prior(config: networks.NetworkConfig = networks.NetworkConfig()) -> 
         return networks.score(params, x, t, code, config)
 
     return PriorScore("learned", condition, score)
+
+
+@functools.lru_cache(maxsize=None)
+def unconditional_prior(config: networks.NetworkConfig = networks.NetworkConfig()) -> PriorScore:
+    """A score net trained on one ensemble alone (no encoder): its code is fixed at zero.
+
+    The from-scratch reference of the prior-quality study, and the per-step model of the score-based
+    filter (SF) baseline.
+    """
+
+    def condition(params, centers, ensemble, process_std):
+        del params, centers, process_std
+        return jnp.zeros((config.code_dim,), ensemble.dtype)
+
+    def score(params, code, x, t):
+        return networks.score(params, x, t, code, config)
+
+    return PriorScore("unconditional", condition, score)
