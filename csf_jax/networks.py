@@ -164,11 +164,11 @@ class SetEncoder(nn.Module):
         cfg = self.config
         h = nn.Dense(cfg.hidden, name="embed")(ensemble_features(ensemble))
         for i in range(cfg.blocks):
-            h = nn.LayerNorm(name=f"sab{i}_norm")(h + _attention(cfg, f"sab{i}_attn")(h, h, h))
+            h = nn.LayerNorm(name=f"sab{i}_norm")(h + _attention(cfg, f"sab{i}_attn")(h))
         seed = self.param("pma_seed", nn.initializers.normal(stddev=0.02), (cfg.hidden,))
         query = jnp.broadcast_to(seed.astype(h.dtype), h.shape[:-2] + (1, cfg.hidden))
         keys = jnp.concatenate([query, h], axis=-2) if cfg.pma_seed_in_keys else h
-        pooled = _attention(cfg, "pma_attn")(query, keys, keys)[..., 0, :]
+        pooled = _attention(cfg, "pma_attn")(query, keys)[..., 0, :]  # values = keys
         z = nn.LayerNorm(name="pma_norm")(pooled)
         z = nn.silu(nn.Dense(cfg.hidden, name="head_hidden")(z))
         return nn.Dense(cfg.code_dim, name="head_out")(z)

@@ -1,15 +1,14 @@
 """Every filter runs on every named problem (short runs): PF, EnKF, and CSF with the exact
-mixture prior and with randomly initialised networks."""
+mixture prior, with randomly initialised networks, and with the shipped pretrained model (the last
+two share one compilation)."""
 
 import jax
 import jax.numpy as jnp
 import pytest
 
 import csf_jax
-from csf_jax import CSFConfig, NetworkConfig, problems
-
-SMALL_NET = NetworkConfig(hidden=16, heads=2, blocks=1, code_dim=8, score_hidden=32,
-                          score_layers=2)
+from csf_jax import CSFConfig, problems
+from csf_jax.pretrained import MODEL_FOR, load_pretrained
 
 
 def _data(name, n=32, k=4):
@@ -28,10 +27,13 @@ def test_every_filter_runs(name):
         "csf_exact": csf_jax.filter(None, obs, ens, problem=model, key=key,
                                     config=CSFConfig(reverse_steps=50)),
     }
-    params = csf_jax.init_params(jax.random.key(3), SMALL_NET, dim=model.dim)
-    results["csf_random_net"] = csf_jax.filter(params, obs, ens, problem=model, key=key,
-                                               network=SMALL_NET,
-                                               config=CSFConfig(reverse_steps=50))
+    shipped = load_pretrained(name)
+    assert shipped.meta["problem"] == MODEL_FOR[name]
+    random = csf_jax.init_params(jax.random.key(3), shipped.network, dim=model.dim)
+    for label, params in (("csf_random_net", random), ("csf_pretrained", shipped.params)):
+        results[label] = csf_jax.filter(params, obs, ens, problem=model, key=key,
+                                        network=shipped.network,
+                                        config=CSFConfig(reverse_steps=50))
     for method, r in results.items():
         assert r.mean.shape == (4, model.dim), method
         assert bool(jnp.isfinite(r.mean).all()), method
