@@ -26,6 +26,7 @@ from csf_jax.guidance import GuidanceConfig
 from csf_jax.metrics import wasserstein_1d
 from csf_jax.pretrained import DATASETS, MODEL_FOR, load_pretrained
 from csf_jax.prior import learned_prior, unconditional_prior
+from csf_jax.sde import marginal_std
 from csf_jax.training import generate, load
 from csf_jax.training.single import fit_unconditional
 
@@ -42,7 +43,7 @@ def compare(samples, ensemble):
 def sample(params, prior, context, n, d, key):
     """``n`` prior samples from ``prior`` conditioned on ``context`` (no observation)."""
     k_init, k_rev = jax.random.split(key)
-    x0 = 9.8452 * jax.random.normal(k_init, (n, d))
+    x0 = marginal_std(1.0, PRIOR_ONLY.sigma_max) * jax.random.normal(k_init, (n, d))
     return posterior_sample(params, prior, context, lambda x: 0.0, x0, k_rev, PRIOR_ONLY, 0.0)
 
 
