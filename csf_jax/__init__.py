@@ -5,12 +5,13 @@ Entry points:
   ``csf_jax.simulate(problem, key)``: truth and observations of a ``StateSpaceModel``.
   ``csf_jax.problems.get(name)``: the paper's problems.
   ``csf_jax.load_pretrained(name)``: the shipped trained prior of a problem.
+  ``csf_jax.score_filter``: the SF baseline (a score net trained online at every step).
   ``csf_jax.particle_filter`` / ``csf_jax.ensemble_kalman_filter`` / ``csf_jax.kalman_filter``.
 """
 
 from csf_jax import metrics, problems
-from csf_jax.filters import (CSFConfig, FilterResult, ensemble_kalman_filter, kalman_filter,
-                             particle_filter)
+from csf_jax.filters import (CSFConfig, FilterResult, SFConfig, ensemble_kalman_filter,
+                             kalman_filter, particle_filter, score_filter)
 from csf_jax.filters.csf import csf_filter as filter  # noqa: A001  (the user-facing name)
 from csf_jax.guidance import GuidanceConfig
 from csf_jax.metrics import rmse
@@ -18,12 +19,12 @@ from csf_jax.networks import NetworkConfig, init_params
 from csf_jax.prior import PriorScore, exact_mixture_prior, learned_prior
 from csf_jax.pretrained import load_pretrained
 from csf_jax.ssm import (ObservationNoise, StateSpaceModel, cauchy_noise, gaussian_noise,
-                         log_likelihood, propagate, simulate)
+                         log_likelihood, propagate, shock_steps, simulate)
 
 __version__ = "0.1.0"
 
 __all__ = ["CSFConfig", "FilterResult", "GuidanceConfig", "NetworkConfig", "ObservationNoise",
-           "PriorScore", "StateSpaceModel", "cauchy_noise", "ensemble_kalman_filter",
+           "PriorScore", "SFConfig", "StateSpaceModel", "cauchy_noise", "ensemble_kalman_filter",
            "exact_mixture_prior", "filter", "gaussian_noise", "init_params", "kalman_filter",
            "learned_prior", "load_pretrained", "log_likelihood", "metrics", "particle_filter", "problems",
-           "propagate", "rmse", "simulate"]
+           "propagate", "rmse", "score_filter", "shock_steps", "simulate"]

@@ -20,6 +20,23 @@ def marginal_std(t, sigma_max: float = SIGMA_MAX):
     return jnp.sqrt(jnp.expm1(2.0 * t * log_s) / (2.0 * log_s))
 
 
+def time_of_std(sigma, sigma_max: float = SIGMA_MAX):
+    """Inverse of :func:`marginal_std`: the time t with ``marginal_std(t) = sigma`` (sigma >= 0)."""
+    log_s = jnp.log(sigma_max)
+    return jnp.log1p(2.0 * log_s * jnp.square(sigma)) / (2.0 * log_s)
+
+
+def inflated_time(t, inflation: float, sigma_max: float = SIGMA_MAX):
+    """The time whose marginal std is ``sqrt(sigma_t^2 + inflation^2)``.
+
+    The score of the VE-diffused prior at that time is the score at time t of the prior convolved
+    with ``N(0, inflation^2 I)``: evaluating a prior score there inflates the prior.
+    """
+    if inflation == 0.0:
+        return t
+    return time_of_std(jnp.sqrt(jnp.square(marginal_std(t, sigma_max)) + inflation ** 2), sigma_max)
+
+
 def diffusion_sq(t, sigma_max: float = SIGMA_MAX):
     """``g(t)^2 = s^(2t)``, the squared diffusion coefficient; ``d sigma_t^2 / dt``."""
     return jnp.exp(2.0 * t * jnp.log(sigma_max))

@@ -143,6 +143,15 @@ def propagate(model: StateSpaceModel, key: Array, ensemble: Array) -> Array:
     return mean + model.process_std * jax.random.normal(key, mean.shape, mean.dtype)
 
 
+def shock_steps(model: StateSpaceModel, key: Array, num_steps: int | None = None) -> Array:
+    """``(K,)`` bool: the steps at which ``simulate(model, key)`` shocks the truth (step k is x_{k+1}).
+
+    For figures and post-shock error analyses; same key as the ``simulate`` call.
+    """
+    K = model.num_steps if num_steps is None else int(num_steps)
+    return model.shock_times(jax.random.split(key, 5)[1], K)
+
+
 def simulate(model: StateSpaceModel, key: Array, num_steps: int | None = None):
     """Simulate the truth and its observations.
 
@@ -150,9 +159,9 @@ def simulate(model: StateSpaceModel, key: Array, num_steps: int | None = None):
     shocks applied to the truth. Same key, same trajectory. Jit- and vmap-friendly.
     """
     K = model.num_steps if num_steps is None else int(num_steps)
-    k0, k_times, k_shock, k_proc, k_obs = jax.random.split(key, 5)
+    k0, _, k_shock, k_proc, k_obs = jax.random.split(key, 5)
     x0 = model.initial_truth(k0)
-    shocked = model.shock_times(k_times, K)
+    shocked = shock_steps(model, key, K)
     v = model.process_std * jax.random.normal(k_proc, (K, model.dim))
 
     def step(x, inputs):

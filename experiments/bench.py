@@ -172,7 +172,7 @@ def _torch_runner(spec: dict, params: dict, obs: np.ndarray, ens: np.ndarray):
         with torch.no_grad():
             code = nets.encoder(x)
             t0 = time.perf_counter()
-            step(x, y, code, sched.t[0], sched.var[0], sched.g2dt[0], sched.noise_scale[0],
+            step(x, y, code, sched.t_score[0], sched.var[0], sched.g2dt[0], sched.noise_scale[0],
                  sched.noise_on[0], torch.tensor(1.0), torch.randn_like(x))
         info["compile_s"] = time.perf_counter() - t0
 

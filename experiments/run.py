@@ -1,111 +1,310 @@
-"""Run the filters on one of the paper's problems and print the RMSE table.
+"""The main job: run CSF, SF, EnKF and PF on one of the paper's problems (paper Sec. 3).
 
-    python -m experiments.run double_well [--methods csf,enkf,pf] [--runs 10] [--particles 1000]
-        [--steps 500] [--seed 0] [--out DIR] [--quick]
+    python -m experiments.run double_well [--methods csf,sf,enkf,pf] [--runs 10] [--particles 1000]
+        [--steps 500] [--seed 0] [--out DIR] [--batch B] [--prior pretrained|exact] [--quick]
 
-Simulates ``--runs`` independent truth/observation trajectories (seeded), runs every method on the
-same data (vmapped over runs), and prints RMSE (the paper's Eq. rmse, full norm), RMSE per
-coordinate, and seconds per filter step with the compile time apart. ``--out DIR`` writes
-``results.json``.
+Simulates ``--runs`` independent truth/observation trajectories (run i uses the key
+``fold_in(key(seed), i)``, so a run does not depend on how many others there are), runs every method
+on the same data and prints a table: RMSE (the paper's Eq. rmse, full norm), RMSE per coordinate,
+RMSE before and after the first shock, seconds per filter step (per run, compile time apart).
 
-CSF uses the shipped pretrained prior of the problem (``csf_jax.load_pretrained``; triple_well uses
-the double-well model). ``--prior exact`` uses the exact Gaussian-mixture prior instead (the score of
-the propagated ensemble in closed form, no network): it separates the learned prior's error from the
-sampler's.
+CSF uses the shipped pretrained prior (``csf_jax.load_pretrained``; triple_well uses the double-well
+model: the paper's transfer experiment); ``--prior exact`` uses the exact Gaussian-mixture prior.
+SF trains its score net online (``csf_jax.SFConfig``: the per-step budget is printed).
+
+``--out DIR`` writes ``results.json`` and PNG figures (matplotlib: ``pip install -e '.[plots]'``), and
+caches every finished batch of runs under ``DIR/cache``: an interrupted job, run again with the same
+arguments, resumes at the first unfinished batch. Runs are batched with ``vmap``, ``--batch`` at a
+time (default: all runs for EnKF/PF and on GPU; 1 at a time for CSF/SF on CPU, where XLA runs a
+vmapped batch no faster per run than one run).
+
+The full seven-problem table of the README is ``python -m experiments.table``.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
 import os
 import platform
 import sys
 import time
+from typing import Optional
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 import csf_jax
-from csf_jax import CSFConfig, problems
+from csf_jax import CSFConfig, SFConfig, problems
 from csf_jax.pretrained import load_pretrained
 
-METHODS = ("csf", "enkf", "pf")
+METHODS = ("csf", "sf", "enkf", "pf")
+LABELS = {"csf": "CSF", "sf": "SF", "enkf": "EnKF", "pf": "PF"}
+QUICK = dict(runs=2, particles=100, steps=50, num_steps=10)
+QUICK_SF = SFConfig(train_steps=20, warmup_steps=100)
 
 
-def _runner(method: str, model, config: CSFConfig, pretrained):
-    """``(obs (R, K, m), ens (R, N, d), keys (R,)) -> FilterResult`` batched over runs, jitted.
+class Progress:
+    """A one-line progress bar on stderr over ``total`` filter steps, fed by the filters' host
+    callback (``progress=`` of ``csf_jax.filter`` / ``csf_jax.score_filter``).
+
+    One instance per method: the filters take it as a static argument, so every batch of runs
+    reuses one compilation. ``offset`` says how many filter steps earlier batches covered, ``width``
+    how many runs the current batch holds (the callback fires once per step for the whole batch).
+    """
+
+    def __init__(self, label: str, total: int, enabled: bool = True):
+        self.label, self.total, self.enabled = label, total, enabled
+        self.offset, self.width, self.t0, self._last = 0, 1, time.perf_counter(), 0.0
+
+    def __call__(self, k) -> None:
+        if not self.enabled:
+            return
+        done = self.offset + (int(k) + 1) * self.width
+        now = time.perf_counter()
+        if now - self._last < 1.0 and done < self.total:
+            return
+        self._last = now
+        frac = done / self.total
+        bar = "#" * int(30 * frac)
+        elapsed = now - self.t0
+        eta = elapsed * (1 - frac) / max(frac, 1e-9)
+        print(f"\r  {self.label:5s} [{bar:30s}] {done}/{self.total} filter steps  {elapsed:.0f} s"
+              f"  ETA {eta:.0f} s ", end="", file=sys.stderr, flush=True)
+
+    def close(self) -> None:
+        if self.enabled:
+            print("\r" + " " * 90 + "\r", end="", file=sys.stderr, flush=True)
+
+
+def run_keys(seed: int, runs: int):
+    """Per-run keys ``(3, runs)``: truth/observations, initial ensemble, filter."""
+    keys = jax.vmap(lambda i: jax.random.split(jax.random.fold_in(jax.random.key(seed), i), 3))(
+        jnp.arange(runs))
+    return keys.T
+
+
+def simulate_runs(model, runs: int, particles: int, seed: int):
+    """``truth (R, K+1, d)``, ``obs (R, K, m)``, ``shocks (R, K)`` bool, ``ens (R, N, d)``, filter
+    keys ``(R,)``."""
+    k_sim, k_ens, k_filt = run_keys(seed, runs)
+    truth, obs = jax.vmap(lambda k: csf_jax.simulate(model, k))(k_sim)
+    shocks = jax.vmap(lambda k: csf_jax.shock_steps(model, k))(k_sim)
+    ens = jax.vmap(lambda k: model.initial_ensemble(k, particles))(k_ens)
+    return truth, obs, shocks, ens, k_filt
+
+
+def method_fn(method: str, model, config: CSFConfig, sf: SFConfig, pretrained, progress,
+              return_ensembles: bool = False):
+    """``(obs (K, m), ens (N, d), key) -> FilterResult`` for one run of ``method``.
 
     pretrained: a ``csf_jax.pretrained.Pretrained`` for CSF, or None for the exact mixture prior.
     """
     if method == "csf":
         params = None if pretrained is None else pretrained.params
         network = None if pretrained is None else pretrained.network
-        one = lambda o, e, k: csf_jax.filter(params, o, e, problem=model, key=k, config=config,
-                                             network=network)
-    elif method == "enkf":
-        one = lambda o, e, k: csf_jax.ensemble_kalman_filter(o, e, problem=model, key=k)
-    elif method == "pf":
-        one = lambda o, e, k: csf_jax.particle_filter(o, e, problem=model, key=k)
-    else:
-        raise SystemExit(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
-    return jax.jit(jax.vmap(one))
+        return lambda o, e, k: csf_jax.filter(params, o, e, problem=model, key=k, config=config,
+                                              network=network, progress=progress,
+                                              return_ensembles=return_ensembles)
+    if method == "sf":
+        return lambda o, e, k: csf_jax.score_filter(o, e, problem=model, key=k, config=sf,
+                                                    sampler=config, progress=progress,
+                                                    return_ensembles=return_ensembles)
+    if method == "enkf":
+        return lambda o, e, k: csf_jax.ensemble_kalman_filter(o, e, problem=model, key=k)
+    if method == "pf":
+        return lambda o, e, k: csf_jax.particle_filter(o, e, problem=model, key=k)
+    raise SystemExit(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
 
 
-def _timed(fn, *args):
-    t0 = time.perf_counter()
-    out = fn(*args)
-    jax.block_until_ready(out)
-    return out, time.perf_counter() - t0
+def _fingerprint(obj) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=repr).encode()).hexdigest()[:16]
 
 
-def run(name: str, methods, runs: int, particles: int, steps: int, seed: int,
-        num_steps: int | None = None, prior: str = "pretrained"):
-    """Simulate ``runs`` trajectories and run ``methods``; returns a results dict."""
-    model = problems.get(name) if num_steps is None else problems.get(name, num_steps=num_steps)
+def _filter_runs(method, fn, obs, ens, keys, batch, cache_dir, ident, progress):
+    """Run ``fn`` over all runs in vmapped batches; returns means (R, K, d), seconds, compile s.
+
+    A finished batch is saved as ``cache_dir/<method>-<lo>-<hi>-<ident>.npz`` and reused.
+    """
+    R, K = obs.shape[:2]
+    batched = jax.jit(jax.vmap(fn))
+    compiled, compile_s = None, 0.0
+    means, seconds = [], 0.0
+    for lo in range(0, R, batch):
+        hi = min(R, lo + batch)
+        path = None if cache_dir is None else os.path.join(cache_dir,
+                                                           f"{method}-{lo}-{hi}-{ident}.npz")
+        progress.offset, progress.width = lo * K, hi - lo
+        if path is not None and os.path.exists(path):
+            with np.load(path) as f:
+                means.append(f["mean"])
+                seconds += float(f["seconds"])
+                compile_s = max(compile_s, float(f["compile_seconds"]))
+            continue
+        args = (obs[lo:hi], ens[lo:hi], keys[lo:hi])
+        if compiled is None or hi - lo != batch:
+            t0 = time.perf_counter()
+            compiled = batched.lower(*args).compile()
+            compile_s = max(compile_s, time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        result = jax.block_until_ready(compiled(*args))
+        run_s = time.perf_counter() - t0
+        mean = np.asarray(result.mean)
+        if not np.all(np.isfinite(mean)):
+            bad = np.argwhere(~np.all(np.isfinite(mean), axis=-1))[0]
+            print(f"\n  warning: {method} run {lo + bad[0]} is not finite from filter step "
+                  f"{bad[1]} on", file=sys.stderr)
+        means.append(mean)
+        seconds += run_s
+        if path is not None:
+            tmp = path + ".tmp.npz"
+            np.savez(tmp, mean=mean, seconds=run_s, compile_seconds=compile_s)
+            os.replace(tmp, path)
+    progress.close()
+    return np.concatenate(means), seconds, compile_s
+
+
+def _errors(mean, truth):
+    """Squared error ``(R, K)`` of the filtered means ``(R, K, d)`` against ``truth (R, K+1, d)``."""
+    return np.sum((mean - truth[:, 1:]) ** 2, axis=-1)
+
+
+def summarize(err, shocks, dim: int) -> dict:
+    """RMSE figures of one method from squared errors ``(R, K)`` and shock flags ``(R, K)``."""
+    R, K = err.shape
+    first = np.where(shocks.any(axis=1), shocks.argmax(axis=1), K)
+    before = np.arange(K)[None, :] < first[:, None]
+    with np.errstate(invalid="ignore"):
+        return {
+            "rmse": float(np.sqrt(err.mean())),
+            "rmse_per_dim": float(np.sqrt(err.mean() / dim)),
+            "rmse_per_run": np.sqrt(err.mean(axis=1)).tolist(),
+            "rmse_over_time": np.sqrt(err.mean(axis=0)).tolist(),
+            "rmse_before_shock": float(np.sqrt(err[before].mean())) if before.any() else None,
+            "rmse_after_shock": float(np.sqrt(err[~before].mean())) if (~before).any() else None,
+        }
+
+
+def default_batch(method: str, runs: int) -> int:
+    """Runs per vmapped batch: all for EnKF/PF and on accelerators, else 1 (see module doc)."""
+    if method in ("enkf", "pf") or jax.default_backend() != "cpu":
+        return runs
+    return 1
+
+
+def run(name: str, methods=METHODS, runs: int = 10, particles: int = 1000, steps: int = 500,
+        seed: int = 0, num_steps: Optional[int] = None, prior: str = "pretrained",
+        out: Optional[str] = None, batch: Optional[int] = None, sf: SFConfig = SFConfig(),
+        method_runs: Optional[dict] = None, progress: bool = True, figures: bool = True) -> dict:
+    """Simulate ``runs`` trajectories, run ``methods`` on them; returns the results dict (and writes
+    ``results.json`` and figures under ``out``).
+
+    method_runs: optional ``{method: R_m}`` to run a method on the first ``R_m <= runs`` runs only
+    (SF on a CPU budget); its figures then use those runs.
+    """
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        raise SystemExit(f"unknown method(s) {', '.join(unknown)}; choose from {', '.join(METHODS)}")
+    overrides = {} if num_steps is None else {"num_steps": num_steps}
+    model = problems.get(name, **overrides)
     pretrained = load_pretrained(name) if prior == "pretrained" and "csf" in methods else None
     config = CSFConfig(reverse_steps=steps)
-    keys = jax.random.split(jax.random.key(seed), 3 * runs).reshape(3, runs)
-    truth, obs = jax.vmap(lambda k: csf_jax.simulate(model, k))(keys[0])
-    ens = jax.vmap(lambda k: model.initial_ensemble(k, particles))(keys[1])
+    truth, obs, shocks, ens, keys = simulate_runs(model, runs, particles, seed)
+    truth, shocks_np = np.asarray(truth), np.asarray(shocks)
     K = obs.shape[1]
-    out = {"problem": name, "config": {"runs": runs, "particles": particles,
-                                        "reverse_steps": steps, "seed": seed, "num_steps": K,
-                                        "problem": dataclasses.asdict(problems.config(name)),
-                                        "csf": repr(config), "csf_prior": prior},
-           "rmse": {}, "rmse_per_dim": {}, "seconds_per_step": {}, "compile_seconds": {},
-           "rmse_per_run": {}}
+    cfg = {"runs": runs, "particles": particles, "reverse_steps": steps, "seed": seed,
+           "num_steps": K, "problem": dataclasses.asdict(problems.config(name)) | overrides,
+           "csf": dataclasses.asdict(config), "csf_prior": prior,
+           "csf_model": None if pretrained is None else pretrained.meta.get("problem"),
+           "csf_model_id": None if pretrained is None else _fingerprint(pretrained.meta),
+           "sf": dataclasses.asdict(sf), "method_runs": dict(method_runs or {})}
+    out_dict = {"problem": name, "config": cfg, "rmse": {}, "rmse_per_dim": {},
+                "seconds_per_step": {}, "compile_seconds": {}, "runs_used": {},
+                "rmse_per_run": {}, "rmse_over_time": {}, "rmse_before_shock": {},
+                "rmse_after_shock": {},
+                "shock_steps": [np.nonzero(s)[0].tolist() for s in shocks_np]}
+    cache = None if out is None else os.path.join(out, "cache")
+    if cache is not None:
+        os.makedirs(cache, exist_ok=True)
+    means = {}
     for method in methods:
-        fn = _runner(method, model, config, pretrained)
-        lowered = fn.lower(obs, ens, keys[2])
-        t0 = time.perf_counter()
-        compiled = lowered.compile()
-        compile_s = time.perf_counter() - t0
-        result, run_s = _timed(compiled, obs, ens, keys[2])
-        mean = np.asarray(result.mean)
-        err = np.sum((mean - np.asarray(truth[:, 1:])) ** 2, axis=-1)
-        out["rmse"][method] = float(np.sqrt(err.mean()))
-        out["rmse_per_dim"][method] = float(np.sqrt(err.mean() / model.dim))
-        out["rmse_per_run"][method] = np.sqrt(err.mean(axis=1)).tolist()
-        out["seconds_per_step"][method] = run_s / (runs * K)
-        out["compile_seconds"][method] = compile_s
-        print(f"  {method:5s} RMSE {out['rmse'][method]:.3f}  ({run_s:.1f} s for {runs} runs, "
+        r_m = min(runs, (method_runs or {}).get(method, runs))
+        ident = _fingerprint({"problem": cfg["problem"], "name": name, "particles": particles,
+                              "seed": seed, "method": method,
+                              "config": {"csf": cfg["csf"], "prior": prior,
+                                         "model": cfg["csf_model_id"]} if method == "csf" else
+                              {"sf": cfg["sf"], "csf": cfg["csf"]} if method == "sf" else None})
+        bar = Progress(LABELS[method], r_m * K, enabled=progress and method in ("csf", "sf"))
+        fn = method_fn(method, model, config, sf, pretrained, bar)
+        b = batch or default_batch(method, r_m)
+        mean, seconds, compile_s = _filter_runs(method, fn, obs[:r_m], ens[:r_m], keys[:r_m], b,
+                                                cache, ident, bar)
+        means[method] = mean
+        summary = summarize(_errors(mean, truth[:r_m]), shocks_np[:r_m], model.dim)
+        for field, value in summary.items():
+            out_dict[field][method] = value
+        out_dict["seconds_per_step"][method] = seconds / (r_m * K)
+        out_dict["compile_seconds"][method] = compile_s
+        out_dict["runs_used"][method] = r_m
+        print(f"  {LABELS[method]:5s} RMSE {summary['rmse']:.3f}  ({seconds:.1f} s for {r_m} runs, "
               f"compile {compile_s:.1f} s)", file=sys.stderr, flush=True)
-    out["machine"] = {"platform": platform.platform(), "processor": platform.processor(),
-                      "cpu_count": os.cpu_count(), "jax_devices": [str(d) for d in jax.devices()]}
-    out["versions"] = {"python": platform.python_version(), "jax": jax.__version__,
-                       "csf_jax": csf_jax.__version__}
-    return out
+    out_dict["machine"] = machine()
+    out_dict["versions"] = versions()
+    if out is not None:
+        with open(os.path.join(out, "results.json"), "w") as f:
+            json.dump(out_dict, f, indent=1)
+        if figures:
+            _figures(out, name, model, truth, shocks_np, means, pretrained, config, ens,
+                     run_keys(seed, 1)[0, 0], "csf" in methods)
+    return out_dict
 
 
-def table(results) -> str:
+def _figures(out, name, model, truth, shocks, means, pretrained, config, ens, sim_key, with_csf):
+    """Write the PNG figures, or say how to get matplotlib."""
+    try:
+        from experiments import figures
+    except ImportError as e:  # matplotlib missing
+        print(f"  figures skipped ({e}); pip install -e '.[plots]' to get them", file=sys.stderr)
+        return
+    paths = [figures.estimates(out, name, truth, shocks, means),
+             figures.rmse_over_time(out, name, truth, shocks, means)]
+    if model.dim == 1 and with_csf:
+        paths.append(figures.prior_vs_model(out, name, model, pretrained, config, ens[0], sim_key,
+                                            shocks[0]))
+    print("  figures: " + ", ".join(paths), file=sys.stderr)
+
+
+def machine() -> dict:
+    """What the numbers were measured on."""
+    cpu = platform.processor()
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next((l.split(":", 1)[1].strip() for l in f if l.startswith("model name")), cpu)
+    except OSError:
+        pass
+    return {"platform": platform.platform(), "cpu": cpu, "cpu_count": os.cpu_count(),
+            "jax_backend": jax.default_backend(), "jax_devices": [str(d) for d in jax.devices()]}
+
+
+def versions() -> dict:
+    import flax
+    import optax
+    return {"python": platform.python_version(), "jax": jax.__version__, "flax": flax.__version__,
+            "optax": optax.__version__, "numpy": np.__version__, "csf_jax": csf_jax.__version__}
+
+
+def table(results: dict) -> str:
     """Markdown table of a results dict."""
-    rows = ["| method | RMSE | RMSE per dim | s / filter step (per run) | compile s |",
-            "|---|---|---|---|---|"]
+    rows = ["| method | runs | RMSE | RMSE per dim | RMSE before / after 1st shock | "
+            "s / filter step (per run) | compile s |", "|---|---|---|---|---|---|---|"]
+    fmt = lambda v: "-" if v is None else f"{v:.3f}"
     for m in results["rmse"]:
-        rows.append(f"| {m} | {results['rmse'][m]:.3f} | {results['rmse_per_dim'][m]:.3f} | "
+        rows.append(f"| {LABELS[m]} | {results['runs_used'][m]} | {results['rmse'][m]:.3f} | "
+                    f"{results['rmse_per_dim'][m]:.3f} | {fmt(results['rmse_before_shock'][m])} / "
+                    f"{fmt(results['rmse_after_shock'][m])} | "
                     f"{results['seconds_per_step'][m]:.4f} | {results['compile_seconds'][m]:.1f} |")
     return "\n".join(rows)
 
@@ -115,31 +314,40 @@ def main(argv=None):
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("problem", choices=problems.NAMES)
     p.add_argument("--methods", default=",".join(METHODS))
-    p.add_argument("--runs", type=int, default=None, help="independent runs (default 10; 2 quick)")
-    p.add_argument("--particles", type=int, default=None, help="N (default 1000; 200 quick)")
-    p.add_argument("--steps", type=int, default=None, help="reverse steps L (default 500; 200 quick)")
+    p.add_argument("--runs", type=int, default=None, help="independent runs (default 10)")
+    p.add_argument("--particles", type=int, default=None, help="N (default 1000)")
+    p.add_argument("--steps", type=int, default=None, help="reverse steps L (default 500)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default=None, help="directory for results.json")
+    p.add_argument("--out", default=None, help="directory for results.json, figures and the cache")
+    p.add_argument("--batch", type=int, default=None, help="runs per vmapped batch (see above)")
+    p.add_argument("--sf-runs", type=int, default=None, help="run SF on the first R runs only")
     p.add_argument("--prior", choices=("pretrained", "exact"), default="pretrained",
                    help="CSF prior: the shipped model (default) or the exact Gaussian mixture")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--quick", action="store_true",
-                   help="small and fast: 2 runs, 200 particles, 200 reverse steps, 20 filter steps")
+                   help="a first look and CI: 2 runs, N=100, L=50, 10 filter steps, SF budget "
+                        "20 steps (warm-up 100)")
     args = p.parse_args(argv)
-    quick = args.quick
-    runs = args.runs or (2 if quick else 10)
-    particles = args.particles or (200 if quick else 1000)
-    steps = args.steps or (200 if quick else 500)
+    q = QUICK if args.quick else {}
+    runs = args.runs or q.get("runs", 10)
+    particles = args.particles or q.get("particles", 1000)
+    steps = args.steps or q.get("steps", 500)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    print(f"{args.problem}: {runs} runs, N={particles}, L={steps}, methods {methods}",
-          file=sys.stderr)
+    sf = QUICK_SF if args.quick else SFConfig()
+    print(f"{args.problem}: {runs} runs, N={particles}, L={steps}, methods {', '.join(methods)}; "
+          f"SF budget {sf.train_steps} Adam steps x {sf.batch} per filter step "
+          f"(+{sf.warmup_steps} warm-up)", file=sys.stderr)
     results = run(args.problem, methods, runs, particles, steps, args.seed,
-                  num_steps=20 if quick else None, prior=args.prior)
+                  num_steps=q.get("num_steps"), prior=args.prior, out=args.out, batch=args.batch,
+                  sf=sf, method_runs=None if args.sf_runs is None else {"sf": args.sf_runs},
+                  progress=not args.no_progress)
     print(table(results))
     if args.out:
-        os.makedirs(args.out, exist_ok=True)
-        with open(os.path.join(args.out, "results.json"), "w") as f:
-            json.dump(results, f, indent=2)
         print(f"wrote {os.path.join(args.out, 'results.json')}", file=sys.stderr)
+    if args.quick or runs < 10 or particles != 1000 or steps != 500:
+        print("This is not the paper's setting (10 runs, N=1000, L=500).", file=sys.stderr)
+    print("The full seven-problem table against the paper: python -m experiments.table "
+          "(see docs/results.md).", file=sys.stderr)
 
 
 if __name__ == "__main__":

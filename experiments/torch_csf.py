@@ -58,11 +58,14 @@ def diffusion_sq(t: torch.Tensor, sigma_max: float) -> torch.Tensor:
 class Schedule(NamedTuple):
     """Per-reverse-step scalars, each ``(L,)`` float32; index ``[l]`` gives a 0-d tensor.
 
-    t: times ``linspace(1, t_min, L)``.  var: ``sigma_t^2``.  g2dt: ``g(t)^2 dt``.
-    noise_scale: ``g(t) sqrt(dt)``.  noise_on: 1.0, or 0.0 at the last step when ``denoise_last``.
+    t: times ``linspace(1, t_min, L)``.  t_score: the times at which the prior score is evaluated
+    (``csf_jax.sde.inflated_time``: t itself without prior inflation).  var: ``sigma_t^2``.
+    g2dt: ``g(t)^2 dt``.  noise_scale: ``g(t) sqrt(dt)``.  noise_on: 1.0, or 0.0 at the last step
+    when ``denoise_last``.
     """
 
     t: torch.Tensor
+    t_score: torch.Tensor
     var: torch.Tensor
     g2dt: torch.Tensor
     noise_scale: torch.Tensor
@@ -78,7 +81,14 @@ def schedule(config: CSFConfig) -> Schedule:
     noise_on = torch.ones(n, dtype=DTYPE)
     if config.denoise_last:
         noise_on[-1] = 0.0
-    return Schedule(t, marginal_std(t, config.sigma_max) ** 2, g2dt, torch.sqrt(g2dt), noise_on)
+    var = marginal_std(t, config.sigma_max) ** 2
+    # csf_jax.sde.inflated_time, op for op in float32
+    log_s = torch.log(torch.tensor(config.sigma_max, dtype=DTYPE))
+    sigma_score = torch.sqrt(torch.square(marginal_std(t, config.sigma_max))
+                             + config.prior_inflation ** 2)
+    t_score = torch.log1p(2.0 * log_s * torch.square(sigma_score)) / (2.0 * log_s)
+    return Schedule(t, t_score if config.prior_inflation else t, var, g2dt, torch.sqrt(g2dt),
+                    noise_on)
 
 
 # --------------------------------------------------------------------------------------------
@@ -397,7 +407,7 @@ def posterior_sample(step: Callable, sched: Schedule, x_init: torch.Tensor, y: t
     x = x_init
     for l in range(sched.t.shape[0]):
         e = eps[l] if eps is not None else torch.randn(x.shape, generator=generator, dtype=x.dtype)
-        x = step(x, y, code, sched.t[l], sched.var[l], sched.g2dt[l], sched.noise_scale[l],
+        x = step(x, y, code, sched.t_score[l], sched.var[l], sched.g2dt[l], sched.noise_scale[l],
                  sched.noise_on[l], guide, e)
     return x
 

@@ -1,6 +1,9 @@
-"""Every filter runs on every named problem (short runs): PF, EnKF, and CSF with the exact
-mixture prior, with randomly initialised networks, and with the shipped pretrained model (the last
-two share one compilation)."""
+"""Every problem through the main job: ``python -m experiments.run <problem> --quick`` runs CSF
+(shipped pretrained prior), SF, EnKF and PF and writes ``results.json`` and the figures; plus CSF
+with the exact mixture prior and with a random-init network."""
+
+import json
+import os
 
 import jax
 import jax.numpy as jnp
@@ -9,31 +12,66 @@ import pytest
 import csf_jax
 from csf_jax import CSFConfig, problems
 from csf_jax.pretrained import MODEL_FOR, load_pretrained
+from experiments import run
 
-
-def _data(name, n=32, k=4):
-    model = problems.get(name, num_steps=k)
-    truth, obs = csf_jax.simulate(model, jax.random.key(0))
-    return model, truth, obs, model.initial_ensemble(jax.random.key(1), n)
+RESULT_KEYS = {"problem", "config", "rmse", "rmse_per_dim", "seconds_per_step", "compile_seconds",
+               "machine", "versions", "rmse_per_run", "rmse_over_time", "rmse_before_shock",
+               "rmse_after_shock", "runs_used", "shock_steps"}
 
 
 @pytest.mark.parametrize("name", problems.NAMES)
-def test_every_filter_runs(name):
-    model, truth, obs, ens = _data(name)
+def test_quick_main_job(name, tmp_path, capsys):
+    pytest.importorskip("matplotlib")
+    run.main([name, "--quick", "--out", str(tmp_path), "--no-progress"])
+    with open(tmp_path / "results.json") as f:
+        res = json.load(f)
+    assert RESULT_KEYS <= set(res)
+    assert res["problem"] == name and res["config"]["csf_model"] == MODEL_FOR[name]
+    K = run.QUICK["num_steps"]
+    for m in run.METHODS:
+        assert res["runs_used"][m] == run.QUICK["runs"]
+        assert len(res["rmse_per_run"][m]) == run.QUICK["runs"]
+        assert len(res["rmse_over_time"][m]) == K
+        assert res["rmse"][m] >= res["rmse_per_dim"][m] > 0  # finite, positive
+        assert res["seconds_per_step"][m] > 0
+    model = problems.get(name)
+    expected = {"estimates.png", "rmse_over_time.png"} | ({"prior.png"} if model.dim == 1 else set())
+    assert expected <= set(os.listdir(tmp_path))
+    assert "| CSF |" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("name", problems.NAMES)
+def test_exact_and_random_net_csf_run(name):
+    model = problems.get(name, num_steps=4)
+    truth, obs = csf_jax.simulate(model, jax.random.key(0))
+    ens = model.initial_ensemble(jax.random.key(1), 32)
     key = jax.random.key(2)
+    shipped = load_pretrained(name)
+    random = csf_jax.init_params(jax.random.key(3), shipped.network, dim=model.dim)
     results = {
-        "pf": csf_jax.particle_filter(obs, ens, problem=model, key=key),
-        "enkf": csf_jax.ensemble_kalman_filter(obs, ens, problem=model, key=key),
         "csf_exact": csf_jax.filter(None, obs, ens, problem=model, key=key,
                                     config=CSFConfig(reverse_steps=50)),
+        "csf_random_net": csf_jax.filter(random, obs, ens, problem=model, key=key,
+                                         network=shipped.network,
+                                         config=CSFConfig(reverse_steps=50)),
     }
-    shipped = load_pretrained(name)
-    assert shipped.meta["problem"] == MODEL_FOR[name]
-    random = csf_jax.init_params(jax.random.key(3), shipped.network, dim=model.dim)
-    for label, params in (("csf_random_net", random), ("csf_pretrained", shipped.params)):
-        results[label] = csf_jax.filter(params, obs, ens, problem=model, key=key,
-                                        network=shipped.network,
-                                        config=CSFConfig(reverse_steps=50))
     for method, r in results.items():
         assert r.mean.shape == (4, model.dim), method
         assert bool(jnp.isfinite(r.mean).all()), method
+
+
+def test_interrupted_main_job_resumes_from_cache(tmp_path):
+    """Finished batches of runs are cached; a second call reuses them (the file is untouched) and
+    recomputes only the missing one, to the same numbers."""
+    kw = dict(methods=("csf", "enkf"), runs=2, particles=32, steps=10, num_steps=4, batch=1,
+              out=str(tmp_path), progress=False, figures=False)
+    first = run.run("double_well", **kw)
+    cache = tmp_path / "cache"
+    csf_files = sorted(c for c in os.listdir(cache) if c.startswith("csf-"))
+    assert len(csf_files) == 2
+    kept, lost = cache / csf_files[0], cache / csf_files[1]
+    stamp = os.stat(kept).st_mtime_ns
+    os.remove(lost)  # as if killed during the second batch
+    again = run.run("double_well", **kw)
+    assert again["rmse"] == first["rmse"]
+    assert os.stat(kept).st_mtime_ns == stamp and lost.exists()

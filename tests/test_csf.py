@@ -11,7 +11,7 @@ from conftest import make_linear_case
 import csf_jax
 from csf_jax import CSFConfig, GuidanceConfig, NetworkConfig, problems
 
-FAST = CSFConfig(reverse_steps=100)
+FAST = CSFConfig(reverse_steps=100, prior_inflation=0.0)  # the exact Bayes update: no inflation
 TINY_NET = NetworkConfig(hidden=16, heads=2, blocks=1, code_dim=8, score_hidden=32,
                          score_layers=2)
 
@@ -34,7 +34,7 @@ def test_exact_prior_csf_tracks_kalman(kalman_case, mode, x64):
     1.25 rms / 2.9 max away, so the bounds fail a filter that ignores the data.
     """
     case = kalman_case
-    cfg = CSFConfig(reverse_steps=100, guidance=GuidanceConfig(mode=mode))
+    cfg = CSFConfig(reverse_steps=100, guidance=GuidanceConfig(mode=mode), prior_inflation=0.0)
     r = csf_jax.filter(None, case.obs, case.ensemble, problem=case.model, key=jax.random.key(5),
                        config=cfg)
     err = case.errors(r.mean, r.std)
@@ -51,7 +51,8 @@ def test_paper_skip_first_observation(kalman_case, x64):
     kw = dict(problem=case.model, key=jax.random.key(5))
     on = csf_jax.filter(None, case.obs, case.ensemble, config=FAST, **kw)
     off = csf_jax.filter(None, case.obs, case.ensemble,
-                         config=CSFConfig(reverse_steps=100, assimilate_first=False), **kw)
+                         config=CSFConfig(reverse_steps=100, assimilate_first=False,
+                                          prior_inflation=0.0), **kw)
     z_on = jnp.abs((on.mean[0] - case.kalman.mean[0]) / case.kalman.std[0]).max()
     z_off = jnp.abs((off.mean[0] - case.kalman.mean[0]) / case.kalman.std[0]).max()
     assert float(z_off) > float(z_on)
@@ -155,3 +156,20 @@ def test_divergence_is_reported_not_silent():
     r = csf_jax.filter(None, obs, ens, problem=model, key=jax.random.key(0), config=cfg,
                        check_finite=False)
     assert not bool(jnp.isfinite(r.mean).all())
+
+
+def test_prior_inflation_matches_the_widened_exact_mixture(x64):
+    """The sampler with prior_inflation=tau on the exact mixture prior of variance q^2 gives the
+    same samples as the sampler without inflation on the mixture of variance q^2 + tau^2."""
+    from csf_jax.filters.csf import posterior_sample
+    from csf_jax.prior import exact_mixture_prior
+
+    prior, q, tau = exact_mixture_prior(25.0), 0.1, 0.4
+    centers = jnp.linspace(-1.0, 1.0, 16)[:, None]
+    x_init = 9.8 * jax.random.normal(jax.random.key(0), (64, 1))
+    loglik = lambda x0: -0.5 * jnp.sum((x0 ** 3 - 0.8) ** 2) / 0.1 ** 2
+    run = lambda variance, infl: posterior_sample(
+        None, prior, prior.condition(None, centers, centers, variance ** 0.5), loglik, x_init,
+        jax.random.key(1), CSFConfig(reverse_steps=50, prior_inflation=infl), 1.0)
+    np.testing.assert_allclose(run(q ** 2, tau), run(q ** 2 + tau ** 2, 0.0), rtol=1e-9, atol=1e-9)
+    assert not np.allclose(run(q ** 2, tau), run(q ** 2, 0.0), atol=1e-3)

@@ -79,3 +79,17 @@ def test_reverse_grid():
     np.testing.assert_allclose(grid.dt, (1.0 - 1e-3) / 499, rtol=1e-6)
     with pytest.raises(ValueError, match="num_steps"):
         sde.reverse_grid(1)
+
+
+def test_time_of_std_inverts_marginal_std(x64):
+    t = jnp.linspace(0.0, 1.0, 21)
+    np.testing.assert_allclose(sde.time_of_std(sde.marginal_std(t, 25.0), 25.0), t, atol=1e-12)
+
+
+@pytest.mark.parametrize("tau", [0.0, 0.3, 2.0])
+def test_inflated_time_adds_variance(x64, tau):
+    """sigma at the inflated time is sqrt(sigma_t^2 + tau^2): the prior convolved with N(0, tau^2)."""
+    t = jnp.linspace(1e-3, 1.0, 11)
+    got = sde.marginal_std(sde.inflated_time(t, tau, 25.0), 25.0)
+    np.testing.assert_allclose(got, np.sqrt(np.asarray(sde.marginal_std(t, 25.0)) ** 2 + tau ** 2),
+                               rtol=1e-12)

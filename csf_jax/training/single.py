@@ -1,7 +1,8 @@
 """Fit an unconditional diffusion model to ONE ensemble (denoising score matching, no encoder).
 
 The from-scratch reference of the prior-quality study (paper Fig. 2b/3a) and the per-step training
-of the score-based filter baseline. The whole fit is one jitted ``lax.scan`` over optimizer steps.
+of the score-based filter (SF) baseline. A fit is one ``lax.scan`` over Adam steps; only the score
+net's variables are trained (the code is fixed at zero, the encoder is unused).
 """
 
 from __future__ import annotations
@@ -16,32 +17,46 @@ from csf_jax import networks
 from csf_jax.sde import marginal_std
 
 
-@functools.partial(jax.jit, static_argnames=("config", "steps", "batch", "lr", "t_min"))
-def fit_unconditional(key, ensemble, params, *, config: networks.NetworkConfig, steps: int = 1000,
-                      batch: int = 256, lr: float = 2e-3, t_min: float = 1e-3):
-    """Train the score net of ``params`` (code fixed at zero) on ``ensemble (N, d)``.
+def dsm_fit(key, ensemble, score_vars, opt_state, optimizer: optax.GradientTransformation, *,
+            config: networks.NetworkConfig, steps: int, batch: int, t_min: float = 1e-3):
+    """``steps`` Adam steps of unconditional DSM of ``score_vars`` on ``ensemble (N, d)``.
 
-    Returns ``(params, losses (steps,))``. Pass fresh ``networks.init_params`` output, or the
-    previous fit to warm-start.
+    Pure and jit/vmap-able. Each step draws ``batch`` particles with replacement, times
+    ``t ~ U(t_min, 1)`` and noises; loss ``|sigma_t s(x0 + sigma_t z, t) + z|^2``.
+
+    Returns ``(score_vars, opt_state, losses (steps,))``.
     """
-    opt = optax.adam(lr)
     code = jnp.zeros((config.code_dim,), ensemble.dtype)
 
-    def loss_fn(p, x0, t, z):
+    def loss_fn(sv, x0, t, z):
         sigma = marginal_std(t, config.sigma_max)[:, None]
-        s = networks.score(p, x0 + sigma * z, t, code, config)
+        s = networks.ScoreNet(config).apply(sv, x0 + sigma * z, t, code)
         return jnp.mean(jnp.sum((sigma * s + z) ** 2, axis=-1))
 
     def step(carry, k):
-        p, o = carry
+        sv, o = carry
         k_i, k_t, k_z = jax.random.split(k, 3)
         x0 = ensemble[jax.random.randint(k_i, (batch,), 0, ensemble.shape[0])]
-        t = jax.random.uniform(k_t, (batch,), minval=t_min, maxval=1.0)
+        t = jax.random.uniform(k_t, (batch,), ensemble.dtype, minval=t_min, maxval=1.0)
         z = jax.random.normal(k_z, x0.shape, x0.dtype)
-        loss, g = jax.value_and_grad(loss_fn)(p, x0, t, z)
-        updates, o = opt.update(g, o, p)
-        return (optax.apply_updates(p, updates), o), loss
+        loss, g = jax.value_and_grad(loss_fn)(sv, x0, t, z)
+        updates, o = optimizer.update(g, o, sv)
+        return (optax.apply_updates(sv, updates), o), loss
 
-    (params, _), losses = jax.lax.scan(step, (params, opt.init(params)),
-                                       jax.random.split(key, steps))
-    return params, losses
+    (score_vars, opt_state), losses = jax.lax.scan(step, (score_vars, opt_state),
+                                                   jax.random.split(key, steps))
+    return score_vars, opt_state, losses
+
+
+@functools.partial(jax.jit, static_argnames=("config", "steps", "batch", "lr", "t_min"))
+def fit_unconditional(key, ensemble, params, *, config: networks.NetworkConfig, steps: int = 1000,
+                      batch: int = 256, lr: float = 2e-3, t_min: float = 1e-3):
+    """Train the score net of ``params`` (code fixed at zero) on ``ensemble (N, d)`` with fresh Adam.
+
+    Returns ``(params, losses (steps,))``; ``params["encoder"]`` is passed through untouched. Pass
+    fresh ``networks.init_params`` output, or a previous fit to warm-start.
+    """
+    opt = optax.adam(lr)
+    score_vars, _, losses = dsm_fit(key, ensemble, params["score"], opt.init(params["score"]), opt,
+                                    config=config, steps=steps, batch=batch, t_min=t_min)
+    return {**params, "score": score_vars}, losses

@@ -34,6 +34,9 @@ class TrainConfig:
     lr, lr_decay, lr_decay_every: Adam with a staircase step decay (the paper's StepLR).
     grad_clip: global-norm clipping.  t_min: smallest diffusion time.  save_every: checkpoint
     interval.  eval_every: held-out loss interval.  valid_sets: held-out ensembles.  seed.
+    mirror: flip the sign of each training ensemble (with its targets) with probability 1/2. A
+    data augmentation for odd-symmetric models (``f(-x) = -f(x)``, symmetric noises: the wells),
+    whose PF rollouts rarely visit the mirror well because the PF loses the truth after a shock.
     """
 
     steps: int = 4000
@@ -49,6 +52,7 @@ class TrainConfig:
     eval_every: int = 250
     valid_sets: int = 64
     seed: int = 0
+    mirror: bool = False
 
     def __post_init__(self):
         if self.steps < 1 or self.batch_sets < 1 or self.targets_per_set < 1:
@@ -108,6 +112,9 @@ def make_batch(data: Dataset, config: TrainConfig, step: int, split: str = "trai
     tgt_idx = rng.integers(0, keep, (ens.shape[0], config.targets_per_set))
     subsets = np.take_along_axis(ens, sub_idx[..., None], axis=1)
     x0 = np.take_along_axis(ens, tgt_idx[..., None], axis=1)
+    if config.mirror and split == "train":
+        sign = rng.choice(np.array([-1.0, 1.0], np.float32), (ens.shape[0], 1, 1))
+        subsets, x0 = subsets * sign, x0 * sign
     return subsets, x0
 
 

@@ -1,0 +1,153 @@
+"""The full table: every problem, every method, 10 runs; writes the results page.
+
+    python -m experiments.table [--problems double_well,...] [--out results] [--runs 10]
+        [--sf-runs 10] [--docs docs/results.md] [--write-only]
+
+Runs ``experiments.run`` (N=1000, L=500, seed 0, pretrained priors) on each problem into
+``OUT/<problem>/`` (``results.json``, figures and the per-batch cache), then rewrites the generated
+part of the results page (between its ``<!-- table:start -->`` and ``<!-- table:end -->`` markers)
+from every ``results.json`` found, beside the paper's values. Resumable: run it again after an
+interruption, or in a later session, and finished batches of runs are reused. ``--write-only``
+only rewrites the page.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+from csf_jax import problems
+from experiments import run as run_mod
+
+# The paper's Table (RMSE over 10 runs) and its per-step time table (s, RTX 4090).
+PAPER_RMSE = {
+    "csf": [0.038, 0.185, 0.217, 0.748, 0.627, 0.764, 0.5978],
+    "sf": [0.040, 0.176, 0.285, 0.750, 0.667, 0.868, 0.661],
+    "enkf": [0.474, 0.249, 2.418, 1.481, 1.108, 1.338, 1.178],
+    "pf": [1.117, 0.317, 1.162, 1.928, 1.489, 2.534, 1.937],
+}
+COLUMNS = ["double_well", "triple_well", "cauchy", "cubic10_indep", "cubic10_corr",
+           "cubic20_indep", "cubic20_corr"]
+HEADERS = ["Double Well", "Triple Well", "Cauchy", "10D I", "10D C", "20D I", "20D C"]
+PAPER_TIME = {"csf": {"double_well": 1.25, "cauchy": 1.55, "10D": 1.61, "20D": 1.65},
+              "sf": {"double_well": 5.85, "cauchy": 7.88, "10D": 7.95, "20D": 8.06}}
+TIME_COLUMNS = [("Double Well", "double_well", "double_well"), ("Cauchy", "cauchy", "cauchy"),
+                ("10D", "10D", "cubic10_corr"), ("20D", "20D", "cubic20_corr")]
+START, END = "<!-- table:start -->", "<!-- table:end -->"
+
+
+def load_results(out: str) -> dict:
+    """``{problem: results dict}`` for every ``OUT/<problem>/results.json`` present."""
+    found = {}
+    for name in COLUMNS:
+        path = os.path.join(out, name, "results.json")
+        if os.path.exists(path):
+            with open(path) as f:
+                found[name] = json.load(f)
+    return found
+
+
+def render(results: dict, command: str) -> str:
+    """The generated markdown: RMSE table, per-step time table, shock split, machine."""
+    lines = [f"Made by `{command}`.", "",
+             "RMSE (Eq. rmse, 10 runs unless marked), ours with the paper's in brackets; bold: the "
+             "best of ours in the column; `-`: not run yet.", "",
+             "| method | " + " | ".join(HEADERS) + " |", "|---" * (len(HEADERS) + 1) + "|"]
+    best = {}
+    for name, res in results.items():
+        best[name] = min(res["rmse"].values()) if res["rmse"] else None
+    for m in run_mod.METHODS:
+        cells = []
+        for j, name in enumerate(COLUMNS):
+            res = results.get(name)
+            if res is None or m not in res["rmse"]:
+                cells.append(f"- ({PAPER_RMSE[m][j]})")
+                continue
+            v = res["rmse"][m]
+            text = f"{v:.3f}"
+            if v == best[name]:
+                text = f"**{text}**"
+            runs = res["runs_used"][m]
+            note = f", {runs} runs" if runs != res["config"]["runs"] or runs != 10 else ""
+            cells.append(f"{text} ({PAPER_RMSE[m][j]}{note})")
+        lines.append(f"| {run_mod.LABELS[m]} | " + " | ".join(cells) + " |")
+    lines += ["", "RMSE before / after the first shock of each run (where the error comes from):",
+              "", "| method | " + " | ".join(HEADERS) + " |", "|---" * (len(HEADERS) + 1) + "|"]
+    fmt = lambda v: "-" if v is None else f"{v:.3f}"
+    for m in run_mod.METHODS:
+        cells = []
+        for name in COLUMNS:
+            res = results.get(name)
+            if res is None or m not in res["rmse"]:
+                cells.append("-")
+            else:
+                cells.append(f"{fmt(res['rmse_before_shock'][m])} / "
+                             f"{fmt(res['rmse_after_shock'][m])}")
+        lines.append(f"| {run_mod.LABELS[m]} | " + " | ".join(cells) + " |")
+    lines += ["", "Seconds per filter step per run (ours: compile excluded; the paper's: RTX 4090):",
+              "", "| method | " + " | ".join(h for h, _, _ in TIME_COLUMNS) + " |",
+              "|---" * (len(TIME_COLUMNS) + 1) + "|"]
+    for m in ("csf", "sf", "enkf", "pf"):
+        cells = []
+        for _, paper_key, name in TIME_COLUMNS:
+            res = results.get(name)
+            ours = "-" if res is None or m not in res["seconds_per_step"] else \
+                f"{res['seconds_per_step'][m]:.3f}"
+            paper = PAPER_TIME.get(m, {}).get(paper_key)
+            cells.append(ours + ("" if paper is None else f" ({paper})"))
+        lines.append(f"| {run_mod.LABELS[m]} | " + " | ".join(cells) + " |")
+    machines = {json.dumps(r["machine"], sort_keys=True) for r in results.values()}
+    lines += ["", "Measured on: " + "; ".join(
+        f"{m['cpu']} ({m['cpu_count']} cores, jax backend {m['jax_backend']})"
+        for m in map(json.loads, sorted(machines))) + "."]
+    return "\n".join(lines)
+
+
+def write_page(path: str, body: str) -> None:
+    """Replace the text between the markers of ``path`` (created if missing) with ``body``."""
+    text = f"# Results\n\n{START}\n{END}\n"
+    if os.path.exists(path):
+        with open(path) as f:
+            text = f.read()
+    if START not in text or END not in text:
+        raise SystemExit(f"{path} lacks the {START} / {END} markers")
+    head, rest = text.split(START, 1)
+    _, tail = rest.split(END, 1)
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    with open(path, "w") as f:
+        f.write(f"{head}{START}\n{body}\n{END}{tail}")
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(prog="python -m experiments.table", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--problems", default=",".join(COLUMNS))
+    p.add_argument("--out", default="results")
+    p.add_argument("--runs", type=int, default=10)
+    p.add_argument("--sf-runs", type=int, default=None, help="run SF on fewer runs (CPU budget)")
+    p.add_argument("--docs", default=os.path.join("docs", "results.md"))
+    p.add_argument("--write-only", action="store_true", help="only rewrite the results page")
+    args = p.parse_args(argv)
+    names = [n.strip() for n in args.problems.split(",") if n.strip()]
+    for n in names:
+        if n not in problems.NAMES:
+            raise SystemExit(f"unknown problem {n!r}; known: {', '.join(problems.NAMES)}")
+    command = "python -m experiments.table" + (f" --sf-runs {args.sf_runs}" if args.sf_runs else "")
+    if not args.write_only:
+        for n in names:
+            t0 = time.perf_counter()
+            print(f"== {n}", file=sys.stderr, flush=True)
+            res = run_mod.run(n, run_mod.METHODS, runs=args.runs, out=os.path.join(args.out, n),
+                              method_runs=None if args.sf_runs is None else {"sf": args.sf_runs})
+            print(run_mod.table(res), flush=True)
+            print(f"== {n} done in {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
+            write_page(args.docs, render(load_results(args.out), command))
+    write_page(args.docs, render(load_results(args.out), command))
+    print(f"wrote {args.docs}", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()
