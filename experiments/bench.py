@@ -3,13 +3,15 @@
     python -m experiments.bench [--out DIR] [--quick] [--dims 1,10,20] [--particles 256,1000,4000]
         [--steps 500] [--repeats 3] [--filter-steps 2] [--impls jax,torch_eager,torch_compile]
         [--traj-runs 10] [--traj-steps 10] [--traj-dim 10] [--traj-particles 1000]
-        [--torch-threads T] [--omp-wait-policy passive|active|unset]
+        [--torch-threads T] [--omp-wait-policy passive|active|unset] [--shards auto|S]
 
 For every state dimension d and ensemble size N it measures one filter step (propagate + encode +
 L reverse steps with the learned prior and clipped DPS guidance; random-init weights of the default
 ``NetworkConfig``; d = 1 is the double well, d > 1 the cubic sensor ``cubic<d>_indep``):
 
-* ``jax``: ``jax.jit(csf_jax.filter)``; compile_s is trace + lower + XLA compile.
+* ``jax``: ``jax.jit(csf_jax.filter)``; compile_s is trace + lower + XLA compile. On a CPU the
+  worker gets one XLA host device per core (``--xla_force_host_platform_device_count``) and the
+  filter splits the particles over them (``shards``; ``--shards 1`` turns this off).
 * ``torch_eager``: ``experiments.torch_csf`` with a Python loop over the reverse steps.
 * ``torch_compile``: the same with the reverse step under ``torch.compile(dynamic=False)``;
   compile_s is the first call of the step (Dynamo + Inductor, with an empty Inductor cache).
@@ -21,8 +23,9 @@ of ``--filter-steps`` filter steps, ``--repeats`` times (alternating, so load ch
 hit all of them alike), after one untimed warm-up run; median_s is the median seconds per filter
 step.
 Then the whole-trajectory case: ``--traj-runs`` independent runs of ``--traj-steps`` filter steps,
-JAX vmapped over the runs (compiled ahead, no warm-up run) against a loop over the runs in eager
-PyTorch.
+JAX vmapped over the runs (``jax_vmap``) and JAX with ``lax.map`` over the runs (``jax_map``, one
+run at a time inside one compiled program), both compiled ahead with no warm-up run, against a loop
+over the runs in eager PyTorch.
 
 Writes ``bench.json`` (machine info and one row per measurement) and ``bench.md`` (the tables) to
 ``--out`` (default ``out/bench``, git-ignored), and prints the tables.
@@ -45,7 +48,7 @@ from typing import Optional
 import numpy as np
 
 IMPLS = ("jax", "torch_eager", "torch_compile")
-TRAJ_IMPLS = ("jax_vmap", "torch_eager_loop")
+TRAJ_IMPLS = ("jax_vmap", "jax_map", "torch_eager_loop")
 _TAG = "@@bench "
 
 
@@ -123,11 +126,19 @@ def _jax_runner(spec: dict, params: dict, obs: np.ndarray, ens: np.ndarray):
 
     name, overrides = problem_name(spec["d"])
     model = problems.get(name, **overrides)
+    shards = spec.get("shards", 1)
+    shards = shards if shards <= len(jax.local_devices()) and spec["N"] % shards == 0 else 1
     one = functools.partial(csf_jax.filter, problem=model, network=NetworkConfig(),
-                            config=CSFConfig(reverse_steps=spec["steps"]), check_finite=False)
+                            config=CSFConfig(reverse_steps=spec["steps"]), check_finite=False,
+                            shards=shards)
     params = jax.tree_util.tree_map(jax.numpy.asarray, params)
     if spec["vmap"]:
         fn = jax.jit(jax.vmap(lambda p, o, e, k: one(p, o, e, key=k), in_axes=(None, 0, 0, 0)))
+        keys = lambda r: jax.random.split(jax.random.key(r), obs.shape[0])
+        args = (obs, ens)
+    elif spec["impl"] == "jax_map":
+        fn = jax.jit(lambda p, o, e, k: jax.lax.map(lambda a: one(p, a[0], a[1], key=a[2]),
+                                                    (o, e, k)))
         keys = lambda r: jax.random.split(jax.random.key(r), obs.shape[0])
         args = (obs, ens)
     else:
@@ -146,7 +157,7 @@ def _jax_runner(spec: dict, params: dict, obs: np.ndarray, ens: np.ndarray):
         jax.block_until_ready(compiled(params, *args, key).mean)
         return time.perf_counter() - t0
 
-    return {"compile_s": compile_s}, run
+    return {"compile_s": compile_s, "shards": shards}, run
 
 
 def _torch_runner(spec: dict, params: dict, obs: np.ndarray, ens: np.ndarray):
@@ -196,7 +207,7 @@ def worker(spec: dict) -> None:
         params = load_params(spec["params"])
         with np.load(spec["data"]) as data:
             obs, ens = data["obs"], data["ens"]
-        build = _jax_runner if spec["impl"] in ("jax", "jax_vmap") else _torch_runner
+        build = _jax_runner if spec["impl"].startswith("jax") else _torch_runner
         t0 = time.perf_counter()
         info, run = build(spec, params, obs, ens)
         info["setup_s"] = time.perf_counter() - t0
@@ -253,6 +264,9 @@ def _worker_env(impl: str, args, cache_root: str) -> dict:
     env = dict(os.environ)
     env.setdefault("PYTHONPATH", "")
     env["PYTHONPATH"] = os.pathsep.join([os.getcwd(), env["PYTHONPATH"]]).rstrip(os.pathsep)
+    if impl.startswith("jax") and args.shards > 1:
+        env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count="
+                            f"{args.shards}").strip()
     if impl.startswith("torch"):
         if args.omp_wait_policy != "unset":
             env["OMP_WAIT_POLICY"] = args.omp_wait_policy.upper()
@@ -265,7 +279,8 @@ def measure(impls, base_spec: dict, args, cache_root: str, repeats: int) -> list
     workers = {}
     for impl in impls:
         spec = dict(base_spec, impl=impl, compile=impl == "torch_compile",
-                    vmap=impl == "jax_vmap", torch_threads=args.torch_threads)
+                    vmap=impl == "jax_vmap", torch_threads=args.torch_threads,
+                    shards=args.shards)
         workers[impl] = Worker(spec, _worker_env(impl, args, cache_root))
         workers[impl].info = workers[impl].read()
     times = {impl: [] for impl in impls}
@@ -291,6 +306,7 @@ def measure(impls, base_spec: dict, args, cache_root: str, repeats: int) -> list
             "compile_s": w.info.get("compile_s"), "peak_mb": end.get("peak_mb"),
             "base_mb": w.info.get("base_mb"), "warmup_s": w.info.get("warmup_s"),
             "times_s": times[impl], "torch_threads": w.info.get("torch_threads"),
+            "shards": w.info.get("shards"),
             "error": w.info.get("error"),
         })
     return rows
@@ -344,16 +360,21 @@ def tables(rows: list[dict]) -> str:
     traj = [r for r in rows if r["kind"] == "trajectory"]
     if traj:
         out += ["", "### Whole trajectories (seconds for all runs, median)", "",
-                "| d | N | L | runs x filter steps | JAX vmapped s | eager loop s | eager / JAX "
-                "| JAX compile s | peak MB JAX / eager |", "|---|---|---|---|---|---|---|---|---|"]
-        j, e = (next((r for r in traj if r["impl"] == i), {}) for i in TRAJ_IMPLS)
-        jt, et = j.get("total_median_s"), e.get("total_median_s")
-        out.append(
-            f"| {j.get('d')} | {j.get('N')} | {j.get('steps')} | {j.get('runs')} x "
-            f"{j.get('filter_steps')} | {_fmt(jt, '.1f')} | {_fmt(et, '.1f')} | "
-            f"{_fmt(None if jt is None or et is None else et / jt, '.2f')} | "
-            f"{_fmt(j.get('compile_s'), '.1f')} | {_fmt(j.get('peak_mb'), '.0f')} / "
-            f"{_fmt(e.get('peak_mb'), '.0f')} |")
+                "| JAX form | d | N | L | runs x filter steps | JAX s | eager loop s | eager / JAX "
+                "| JAX compile s | peak MB JAX / eager |", "|---|---|---|---|---|---|---|---|---|---|"]
+        e = next((r for r in traj if r["impl"] == "torch_eager_loop"), {})
+        et = e.get("total_median_s")
+        for impl in TRAJ_IMPLS[:-1]:
+            j = next((r for r in traj if r["impl"] == impl), None)
+            if j is None:
+                continue
+            jt = j.get("total_median_s")
+            out.append(
+                f"| {impl} | {j.get('d')} | {j.get('N')} | {j.get('steps')} | {j.get('runs')} x "
+                f"{j.get('filter_steps')} | {_fmt(jt, '.1f')} | {_fmt(et, '.1f')} | "
+                f"{_fmt(None if jt is None or et is None else et / jt, '.2f')} | "
+                f"{_fmt(j.get('compile_s'), '.1f')} | {_fmt(j.get('peak_mb'), '.0f')} / "
+                f"{_fmt(e.get('peak_mb'), '.0f')} |")
     errors = [f"- {r['impl']} d={r['d']} N={r['N']}: {r['error']}" for r in rows if r["error"]]
     if errors:
         out += ["", "Failures:", ""] + errors
@@ -381,13 +402,18 @@ def parse_args(argv=None):
     p.add_argument("--traj-particles", type=int, default=1000)
     p.add_argument("--traj-repeats", type=int, default=None, help="default: --repeats")
     p.add_argument("--torch-threads", type=int, default=None, help="default: torch's own")
-    p.add_argument("--omp-wait-policy", choices=("passive", "active", "unset"), default="passive",
+    p.add_argument("--omp-wait-policy", choices=("passive", "active", "unset"), default="unset",
                    help="OMP_WAIT_POLICY of the torch workers ('unset': leave the environment "
                         "alone). With other processes on the cores, OpenMP's spin-waiting stalls "
                         "torch's threads (measured: 207 ms instead of 3.4 ms per reverse step at "
                         "N=1000, load 5 on 2 cores)")
+    p.add_argument("--shards", default="auto",
+                   help="XLA host devices (one per core) the JAX workers split the particles over "
+                        "on a CPU: 'auto' = the number of cores, 1 = off")
     p.add_argument("--worker", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
+    if not args.worker:
+        args.shards = (os.cpu_count() or 1) if args.shards == "auto" else int(args.shards)
     if args.quick:
         args.dims, args.particles, args.steps, args.repeats = "10", "256", 50, 1
         args.filter_steps, args.traj_steps, args.traj_particles, args.traj_dim = 1, 2, 256, 10

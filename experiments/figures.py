@@ -4,11 +4,12 @@
   coordinates (paper Figs. 2c/d, 4, 5); dotted lines mark the shocks.
 * ``rmse_over_time.png``: RMSE over the runs at every filter step, per method (paper Fig. 6).
 * ``prior.png`` (1-D problems): the propagated prior ensemble at one step against samples of the
-  CSF model's prior for it (the reverse SDE without guidance; paper Fig. 2b).
+  CSF model's prior for it (the reverse SDE without guidance or prior inflation; paper Fig. 2b).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 
 import jax
@@ -54,7 +55,7 @@ def estimates(out: str, name: str, truth, shocks, means: dict, run: int = 0) -> 
                 ax.plot(steps[1:], mean[run, :, i], color=COLORS[m], lw=1.2, label=LABELS[m])
         _shock_lines(ax, shocks[run])
         ax.set_ylabel(f"x{i + 1}")
-    axes[0, 0].legend(ncol=5, fontsize=8, loc="upper left")
+    axes[0, 0].legend(ncol=5, fontsize=8, loc="best", framealpha=0.6)
     axes[0, 0].set_title(f"{name}: estimates against the truth (run {run}; dotted: shocks)")
     axes[-1, 0].set_xlabel("filter step k")
     return _save(fig, out, "estimates.png")
@@ -96,8 +97,9 @@ def prior_vs_model(out: str, name: str, model, pretrained, config, ensemble0, ke
     centers = jax.vmap(model.drift)(post)
     context = prior.condition(params, centers, prior_ens, model.process_std)
     x_init = marginal_std(1.0, config.sigma_max) * jax.random.normal(k_init, prior_ens.shape)
-    generated = posterior_sample(params, prior, context, lambda x0: 0.0, x_init, k_rev, config,
-                                 0.0)
+    # the model's own prior: no inflation, no guidance
+    generated = posterior_sample(params, prior, context, lambda x0: 0.0, x_init, k_rev,
+                                 dataclasses.replace(config, prior_inflation=0.0), 0.0)
     fig, ax = plt.subplots(figsize=(6, 3.2))
     a, g = np.asarray(prior_ens[:, 0]), np.asarray(generated[:, 0])
     bins = np.linspace(min(a.min(), g.min()), max(a.max(), g.max()), 50)

@@ -19,6 +19,7 @@ from typing import Callable, Optional
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from csf_jax import _checks, networks
 from csf_jax.filters.result import FilterResult
@@ -99,6 +100,37 @@ def posterior_sample(params, prior: PriorScore, context, loglik_fn, x_init, key,
     return x
 
 
+def particle_sampler(model: StateSpaceModel, prior: PriorScore, config: CSFConfig,
+                     shards: int = 1):
+    """``(params, context, y (m,), x_init (N, d), key, guide) -> (N, d)``: the L reverse steps of
+    one filter step, with the observation ``y`` assimilated.
+
+    shards > 1 splits the particle axis over the first ``shards`` local devices with
+    ``jax.shard_map`` (the reverse steps are independent per particle given the prior's context,
+    which every device gets whole). On a CPU, XLA runs a computation on about one core; start
+    Python with ``XLA_FLAGS=--xla_force_host_platform_device_count=<cores>`` to get one host device
+    per core. Each shard draws its noise from ``fold_in(key, shard)``: results depend on ``shards``.
+    """
+
+    def sample(params, context, y, x_init, key, guide):
+        if shards > 1:
+            key = jax.random.fold_in(key, jax.lax.axis_index("particles"))
+        return posterior_sample(params, prior, context, lambda x0: log_likelihood(model, y, x0),
+                                x_init, key, config, guide)
+
+    if shards == 1:
+        return sample
+    devices = jax.local_devices()
+    if shards > len(devices):
+        raise ValueError(f"csf_jax.filter: shards={shards} but only {len(devices)} local devices; "
+                         f"on CPU set XLA_FLAGS=--xla_force_host_platform_device_count={shards} "
+                         f"before importing jax")
+    mesh = jax.sharding.Mesh(np.array(devices[:shards]), ("particles",))
+    P = jax.sharding.PartitionSpec
+    return jax.shard_map(sample, mesh=mesh, in_specs=(P(), P(), P(), P("particles"), P(), P()),
+                         out_specs=P("particles"), check_vma=False)
+
+
 def _prior_for(params, prior: Optional[PriorScore], network: Optional[NetworkConfig],
                sigma_max: float) -> PriorScore:
     if prior is not None:
@@ -109,10 +141,12 @@ def _prior_for(params, prior: Optional[PriorScore], network: Optional[NetworkCon
 
 
 @functools.partial(jax.jit, static_argnames=("model", "prior", "config", "return_ensembles",
-                                             "progress"))
+                                             "progress", "shards"))
 def _csf_scan(params, obs, ensemble, key, *, model: StateSpaceModel, prior: PriorScore,
-              config: CSFConfig, return_ensembles: bool, progress=None) -> FilterResult:
+              config: CSFConfig, return_ensembles: bool, progress=None,
+              shards: int = 1) -> FilterResult:
     K = obs.shape[0]
+    sample = particle_sampler(model, prior, config, shards)
     sigma_1 = marginal_std(1.0, config.sigma_max)
 
     def filter_step(ens, inputs):
@@ -125,8 +159,7 @@ def _csf_scan(params, obs, ensemble, key, *, model: StateSpaceModel, prior: Prio
         context = prior.condition(params, centers, prior_ens, model.process_std)
         x_init = sigma_1 * jax.random.normal(k_init, ens.shape, ens.dtype)
         guide = jnp.where((k > 0) | config.assimilate_first, 1.0, 0.0).astype(ens.dtype)
-        post = posterior_sample(params, prior, context, lambda x0: log_likelihood(model, y, x0),
-                                x_init, k_rev, config, guide)
+        post = sample(params, context, y, x_init, k_rev, guide)
         out = (post.mean(0), post.std(0), post if return_ensembles else None)
         return post, out
 
@@ -139,7 +172,8 @@ def csf_filter(params, obs, ensemble, *, problem: StateSpaceModel, key,
                prior: Optional[PriorScore] = None, network: Optional[NetworkConfig] = None,
                config: CSFConfig = CSFConfig(), return_ensembles: bool = False,
                check_finite: bool = True,
-               progress: Optional[Callable[[jax.Array], None]] = None) -> FilterResult:
+               progress: Optional[Callable[[jax.Array], None]] = None,
+               shards: int = 1) -> FilterResult:
     """Filter ``obs`` with the Conditional Score-based Filter.
 
     Args:
@@ -156,6 +190,8 @@ def csf_filter(params, obs, ensemble, *, problem: StateSpaceModel, key,
       check_finite: when called outside jit/vmap, raise FloatingPointError if the filter diverged.
       progress: optional host callback ``k -> None`` called at the start of every filter step
         (``jax.debug.callback``; once per step under ``vmap``). For progress bars on long runs.
+      shards: split the particles over this many local devices (see ``particle_sampler``); N must
+        be divisible by it.
 
     Returns:
       ``FilterResult`` with mean and std (K, d), and ensembles if asked for. Works under ``jax.jit``
@@ -164,6 +200,9 @@ def csf_filter(params, obs, ensemble, *, problem: StateSpaceModel, key,
     _checks.check_filter_inputs(obs, ensemble, problem, name="csf_jax.filter")
     _checks.check_key(key, name="csf_jax.filter")
     prior = _prior_for(params, prior, network, config.sigma_max)
+    if not isinstance(shards, int) or shards < 1 or ensemble.shape[-2] % shards:
+        raise ValueError(f"csf_jax.filter: shards must be a positive int dividing the number of "
+                         f"particles N={ensemble.shape[-2]}, got {shards!r}")
     if prior.name == "learned":
         if params is None:
             raise ValueError("csf_jax.filter: a learned prior needs params (got None); pass trained "
@@ -172,7 +211,7 @@ def csf_filter(params, obs, ensemble, *, problem: StateSpaceModel, key,
                               name="csf_jax.filter: params")
     result = _csf_scan(params, jnp.asarray(obs), jnp.asarray(ensemble), key, model=problem,
                        prior=prior, config=config, return_ensembles=return_ensembles,
-                       progress=progress)
+                       progress=progress, shards=shards)
     if check_finite:
         _checks.check_result_finite("csf_jax.filter", result)
     return result
