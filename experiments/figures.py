@@ -106,7 +106,7 @@ def prior_vs_model(out: str, name: str, model, pretrained, config, ensemble0, ke
     ax.hist(a, bins=bins, density=True, alpha=0.5, color="black", label="prior ensemble")
     ax.hist(g, bins=bins, density=True, histtype="step", lw=2, color=COLORS["csf"],
             label=f"CSF model ({prior.name} prior)")
-    ax.set_title(f"{name}: prior at step {k + 1} (run with its own key)")
+    ax.set_title(f"{name}: prior at filter step {k + 1} of run 0, from a CSF run on its data")
     ax.set_xlabel("x")
     ax.legend(fontsize=8)
     return _save(fig, out, "prior.png")
