@@ -20,11 +20,11 @@ import jax.numpy as jnp
 import optax
 
 from csf_jax import _checks, networks
-from csf_jax.filters.csf import CSFConfig, posterior_sample
+from csf_jax.filters.csf import CSFConfig, particle_sampler
 from csf_jax.filters.result import FilterResult
 from csf_jax.prior import unconditional_prior
 from csf_jax.sde import marginal_std
-from csf_jax.ssm import StateSpaceModel, log_likelihood
+from csf_jax.ssm import StateSpaceModel
 from csf_jax.training.single import dsm_fit
 
 
@@ -63,6 +63,7 @@ def _sf_scan(obs, ensemble, key, *, model: StateSpaceModel, config: SFConfig, sa
         raise ValueError(f"SFConfig.network.sigma_max ({net.sigma_max}) must equal the sampler's "
                          f"sigma_max ({sampler.sigma_max})")
     prior = unconditional_prior(net)
+    sample = particle_sampler(model, prior, sampler)
     optimizer = optax.adam(config.lr)
     K = obs.shape[0]
     sigma_1 = marginal_std(1.0, sampler.sigma_max)
@@ -89,8 +90,7 @@ def _sf_scan(obs, ensemble, key, *, model: StateSpaceModel, config: SFConfig, sa
         context = prior.condition(full, centers, prior_ens, model.process_std)
         x_init = sigma_1 * jax.random.normal(k_x, ens.shape, ens.dtype)
         guide = jnp.where((k > 0) | sampler.assimilate_first, 1.0, 0.0).astype(ens.dtype)
-        post = posterior_sample(full, prior, context, lambda x0: log_likelihood(model, y, x0),
-                                x_init, k_rev, sampler, guide)
+        post = sample(full, context, y, x_init, k_rev, guide)
         out = (post.mean(0), post.std(0), post if return_ensembles else None, losses[-1])
         return (post, sv, o), out
 
