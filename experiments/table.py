@@ -1,14 +1,15 @@
 """The full table: every problem, every method, 10 runs; writes the results page.
 
     python -m experiments.table [--problems double_well,...] [--out results] [--runs 10]
-        [--sf-runs 10] [--docs docs/results.md] [--write-only]
+        [--sf-runs 5 | --sf-runs cubic20_corr=5,...] [--docs docs/results.md] [--write-only]
 
 Runs ``experiments.run`` (N=1000, L=500, seed 0, pretrained priors) on each problem into
 ``OUT/<problem>/`` (``results.json``, figures and the per-batch cache), then rewrites the generated
 part of the results page (between its ``<!-- table:start -->`` and ``<!-- table:end -->`` markers)
 from every ``results.json`` found, beside the paper's values. Resumable: run it again after an
-interruption, or in a later session, and finished batches of runs are reused. ``--write-only``
-only rewrites the page.
+interruption, or in a later session, and finished runs are reused. ``--sf-runs`` runs SF on the
+first R runs only (all problems, or the problems named): its online training is what a CPU budget
+cannot afford; the page marks such cells. ``--write-only`` only rewrites the page.
 """
 
 from __future__ import annotations
@@ -19,8 +20,8 @@ import os
 import sys
 import time
 
-from csf_jax import problems
-from experiments import run as run_mod
+from experiments import run as run_mod  # first: it sets XLA's host devices before jax loads
+from csf_jax import problems  # noqa: E402  (isort: after run_mod on purpose)
 
 # The paper's Table (RMSE over 10 runs) and its per-step time table (s, RTX 4090).
 PAPER_RMSE = {  # as printed in the paper
@@ -108,6 +109,13 @@ def render(results: dict, command: str) -> str:
             paper = PAPER_TIME.get(m, {}).get(paper_key)
             cells.append(ours + ("" if paper is None else f" ({paper})"))
         lines.append(f"| {run_mod.LABELS[m]} | " + " | ".join(cells) + " |")
+    at_once = {}
+    for _, _, name in TIME_COLUMNS:
+        for m, r in results.get(name, {}).get("runs_at_once", {}).items():
+            at_once.setdefault(m, set()).add(r)
+    lines += ["", "Per run: the wall-clock time of all runs over runs x filter steps; runs at once: " +
+              ", ".join(f"{run_mod.LABELS[m]} {'/'.join(map(str, sorted(v)))}"
+                        for m, v in at_once.items()) + "."]
     machines = {json.dumps(r["machine"], sort_keys=True) for r in results.values()}
     lines += ["", "Measured on: " + "; ".join(
         f"{m['cpu']} ({m['cpu_count']} cores, jax backend {m['jax_backend']})"
@@ -130,13 +138,32 @@ def write_page(path: str, body: str) -> None:
         f.write(f"{head}{START}\n{body}\n{END}{tail}")
 
 
+def parse_sf_runs(text, names) -> dict:
+    """``--sf-runs``: ``"5"`` -> ``{name: 5 for names}``; ``"a=5,b=3"`` -> ``{"a": 5, "b": 3}``."""
+    if not text:
+        return {}
+    try:
+        if "=" not in text:
+            return {n: int(text) for n in names}
+        pairs = [item.split("=") for item in text.split(",") if item.strip()]
+        out = {k.strip(): int(v) for k, v in pairs}
+    except ValueError:
+        raise SystemExit(f"--sf-runs: expected R or problem=R,..., got {text!r}") from None
+    unknown = [n for n in out if n not in problems.NAMES]
+    if unknown or any(r < 1 for r in out.values()):
+        raise SystemExit(f"--sf-runs: unknown problem(s) {unknown} or R < 1 in {text!r}")
+    return out
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(prog="python -m experiments.table", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--problems", default=",".join(COLUMNS))
     p.add_argument("--out", default="results")
     p.add_argument("--runs", type=int, default=10)
-    p.add_argument("--sf-runs", type=int, default=None, help="run SF on fewer runs (CPU budget)")
+    p.add_argument("--sf-runs", default=None,
+                   help="run SF on fewer runs (CPU budget): R for every problem, or "
+                        "problem=R,... for those named")
     p.add_argument("--docs", default=os.path.join("docs", "results.md"))
     p.add_argument("--write-only", action="store_true", help="only rewrite the results page")
     args = p.parse_args(argv)
@@ -144,13 +171,14 @@ def main(argv=None):
     for n in names:
         if n not in problems.NAMES:
             raise SystemExit(f"unknown problem {n!r}; known: {', '.join(problems.NAMES)}")
+    sf_runs = parse_sf_runs(args.sf_runs, names)
     command = "python -m experiments.table" + (f" --sf-runs {args.sf_runs}" if args.sf_runs else "")
     if not args.write_only:
         for n in names:
             t0 = time.perf_counter()
             print(f"== {n}", file=sys.stderr, flush=True)
             res = run_mod.run(n, run_mod.METHODS, runs=args.runs, out=os.path.join(args.out, n),
-                              method_runs=None if args.sf_runs is None else {"sf": args.sf_runs})
+                              method_runs={"sf": sf_runs[n]} if n in sf_runs else None)
             print(run_mod.table(res), flush=True)
             print(f"== {n} done in {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
             write_page(args.docs, render(load_results(args.out), command))

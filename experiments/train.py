@@ -33,6 +33,8 @@ def main(argv=None):
     p.add_argument("--stride", type=int, default=None)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--save-every", type=int, default=None)
+    p.add_argument("--lr-decay-every", type=int, default=None,
+                   help="halve the learning rate every this many steps (default 1500)")
     p.add_argument("--batch-sets", type=int, default=None)
     p.add_argument("--targets", type=int, default=None, help="x0 targets per set")
     p.add_argument("--set-sizes", default=None, help="comma-separated encoder subset sizes")
@@ -46,6 +48,7 @@ def main(argv=None):
                           ("keep", args.keep), ("stride", args.stride)) if v is not None})
     tcfg = dataclasses.replace(TRAIN.get(args.problem, TrainConfig()), seed=args.seed, **{
         k: v for k, v in (("steps", args.steps), ("save_every", args.save_every),
+                          ("lr_decay_every", args.lr_decay_every),
                           ("eval_every", args.save_every), ("batch_sets", args.batch_sets),
                           ("targets_per_set", args.targets),
                           ("set_sizes", args.set_sizes and tuple(

@@ -7,6 +7,7 @@ import os
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 import csf_jax
@@ -68,3 +69,58 @@ def test_interrupted_main_job_resumes_from_cache(tmp_path):
     again = run.run("double_well", **kw)
     assert again["rmse"] == first["rmse"]
     assert os.stat(kept).st_mtime_ns == stamp and lost.exists()
+
+
+SPREAD = r"""
+import json, os, sys
+os.environ.pop("XLA_FLAGS", None)
+from experiments import run  # sets one XLA host device per core before importing jax
+import jax
+assert jax.local_device_count() == (os.cpu_count() or 1), jax.local_device_count()
+out = sys.argv[1]
+kw = dict(methods=("csf", "sf"), runs=2, particles=32, steps=10, num_steps=4, progress=False,
+          figures=False, sf=run.QUICK_SF)
+spread = run.run("double_well", batch=2, out=os.path.join(out, "a"), **kw)
+alone = run.run("double_well", batch=1, out=os.path.join(out, "b"), **kw)
+json.dump({"spread": spread["rmse_per_run"], "alone": alone["rmse_per_run"],
+           "devices": jax.local_device_count()}, sys.stdout)
+"""
+
+
+def test_runs_spread_over_host_devices_change_nothing_but_time(tmp_path):
+    """The main job spreads a batch of CSF/SF runs over one XLA host device per core; every run's
+    numbers equal those of the same run alone up to float rounding (runs are independent; only the
+    wall clock differs).
+    A batch's cache is one file per run, so a later job with another batch size reuses it."""
+    import subprocess
+    import sys
+
+    res = subprocess.run([sys.executable, "-c", SPREAD, str(tmp_path)], capture_output=True,
+                         text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-2000:]
+    got = json.loads(res.stdout)
+    np.testing.assert_allclose(got["spread"]["csf"], got["alone"]["csf"], rtol=1e-5)
+    # SF's online Adam training amplifies float rounding (other matmul shapes): measured 5e-4.
+    np.testing.assert_allclose(got["spread"]["sf"], got["alone"]["sf"], rtol=5e-3)
+    files = sorted(os.listdir(tmp_path / "a" / "cache"))
+    assert [f.split("-")[:3] for f in files if f.startswith("csf-")] == [["csf", "0", "1"],
+                                                                         ["csf", "1", "2"]]
+    stamps = {f: os.stat(tmp_path / "a" / "cache" / f).st_mtime_ns for f in files}
+    kw = dict(methods=("csf",), runs=2, particles=32, steps=10, num_steps=4, progress=False,
+              figures=False, out=str(tmp_path / "a"))
+    again = run.run("double_well", batch=1, **kw)
+    np.testing.assert_allclose(again["rmse_per_run"]["csf"], got["spread"]["csf"], rtol=1e-6)
+    assert {f: os.stat(tmp_path / "a" / "cache" / f).st_mtime_ns for f in files} == stamps
+
+
+def test_cli_runs_sf_on_fewer_runs_on_cpu_and_says_so(capsys):
+    """On a CPU the CLI's default SF runs are the first CPU_SF_RUNS runs (its online training is
+    the slow column); the table marks the row and stderr says how to get all."""
+    assert jax.default_backend() == "cpu"
+    run.main(["double_well", "--quick", "--runs", "3", "--methods", "csf,sf", "--no-progress"])
+    out = capsys.readouterr()
+    assert f"| SF | {run.CPU_SF_RUNS} |" in out.out and "| CSF | 3 |" in out.out
+    assert f"SF ran on {run.CPU_SF_RUNS} of 3 runs" in out.err
+    run.main(["double_well", "--quick", "--runs", "3", "--methods", "sf", "--sf-runs", "3",
+              "--no-progress"])
+    assert "| SF | 3 |" in capsys.readouterr().out

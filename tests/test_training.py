@@ -160,3 +160,19 @@ def test_pretrained_for_wrong_dimension_fails_clearly():
     with pytest.raises(ValueError, match="d=1.*d=10"):
         csf_jax.filter(dw.params, obs, ens, problem=model, network=dw.network,
                        key=jax.random.key(2))
+
+
+def test_shipped_models_were_trained_by_their_committed_recipe():
+    """Every shipped model's recorded training config is ``csf_jax.pretrained.TRAIN`` of its
+    problem, so ``python -m experiments.make_pretrained`` remakes what ships (fields added to
+    TrainConfig after a model was made are read as their defaults)."""
+    import json
+
+    from csf_jax.pretrained import DATASETS, TRAIN
+
+    defaults = json.loads(json.dumps(dataclasses.asdict(TrainConfig())))
+    for name in DATASETS:
+        recorded = load_pretrained(name).meta["train"]
+        expected = json.loads(json.dumps(dataclasses.asdict(TRAIN[name])))
+        got = {k: recorded.get(k, defaults[k]) for k in expected}
+        assert got == expected, name

@@ -1,0 +1,43 @@
+"""The results page generator (``experiments.table``): options, rendering, rewriting in place."""
+
+import copy
+import os
+
+import pytest
+
+from experiments import table
+
+RESULTS = os.path.join(os.path.dirname(__file__), "..", "results")
+
+
+def test_parse_sf_runs():
+    names = ["double_well", "cauchy"]
+    assert table.parse_sf_runs(None, names) == {}
+    assert table.parse_sf_runs("5", names) == {"double_well": 5, "cauchy": 5}
+    assert table.parse_sf_runs("cubic20_corr=5, cauchy=3", names) == {"cubic20_corr": 5,
+                                                                     "cauchy": 3}
+    for bad in ("five", "nowhere=5", "cauchy=0", "cauchy=5=3"):
+        with pytest.raises(SystemExit, match="--sf-runs"):
+            table.parse_sf_runs(bad, names)
+
+
+def test_render_marks_fewer_runs_and_missing_columns():
+    results = table.load_results(RESULTS)
+    assert "double_well" in results, "the committed results/ should hold the table's runs"
+    one = {"double_well": copy.deepcopy(results["double_well"])}
+    one["double_well"]["runs_used"]["sf"] = 5
+    text = table.render(one, "cmd")
+    sf_row = next(line for line in text.splitlines() if line.startswith("| SF |"))
+    assert ", 5 runs)" in sf_row.split("|")[2]
+    assert sf_row.split("|")[3].strip() == "- (0.176)"  # triple well not in ``one``
+    assert "Made by `cmd`." in text
+
+
+def test_write_page_replaces_only_the_generated_block(tmp_path):
+    page = tmp_path / "r.md"
+    page.write_text(f"# R\n\nintro\n{table.START}\nold\n{table.END}\n\nanalysis\n")
+    table.write_page(str(page), "new")
+    assert page.read_text() == f"# R\n\nintro\n{table.START}\nnew\n{table.END}\n\nanalysis\n"
+    (tmp_path / "bad.md").write_text("no markers")
+    with pytest.raises(SystemExit, match="markers"):
+        table.write_page(str(tmp_path / "bad.md"), "x")
