@@ -14,7 +14,7 @@ model: the paper's transfer experiment); ``--prior exact`` uses the exact Gaussi
 SF trains its score net online (``csf_jax.SFConfig``: the per-step budget is printed).
 
 ``--out DIR`` writes ``results.json`` and PNG figures (matplotlib: ``pip install -e '.[plots]'``), and
-caches every finished batch of runs under ``DIR/cache``: an interrupted job, run again with the same
+caches every finished run under ``DIR/cache``: an interrupted job, run again with the same
 arguments, resumes at the first unfinished run. Runs are batched, ``--batch`` at a time (default:
 all runs for EnKF/PF and on GPU; on CPU one run per core for CSF/SF). On a CPU a vmapped batch runs
 no faster per run than one run, so the job asks XLA for one host device per core
@@ -392,7 +392,7 @@ def main(argv=None):
     p.add_argument("--steps", type=int, default=None, help="reverse steps L (default 500)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=None, help="directory for results.json, figures and the cache")
-    p.add_argument("--batch", type=int, default=None, help="runs per vmapped batch (see above)")
+    p.add_argument("--batch", type=int, default=None, help="runs per batch (see above)")
     p.add_argument("--sf-runs", type=int, default=None,
                    help="run SF on the first R runs only (default: all; on CPU 2, see above)")
     p.add_argument("--prior", choices=("pretrained", "exact"), default="pretrained",

@@ -107,9 +107,10 @@ def particle_sampler(model: StateSpaceModel, prior: PriorScore, config: CSFConfi
 
     shards > 1 splits the particle axis over the first ``shards`` local devices with
     ``jax.shard_map`` (the reverse steps are independent per particle given the prior's context,
-    which every device gets whole). On a CPU, XLA runs a computation on about one core; start
-    Python with ``XLA_FLAGS=--xla_force_host_platform_device_count=<cores>`` to get one host device
-    per core. Each shard draws its noise from ``fold_in(key, shard)``: results depend on ``shards``.
+    which every device gets whole): for several accelerators, or one XLA host device per CPU core
+    (``XLA_FLAGS=--xla_force_host_platform_device_count=<cores>`` before importing jax). On a quiet
+    2-core CPU it gains only 4-7% (docs/benchmark.md): XLA's intra-op threads already use both
+    cores. Each shard draws its noise from ``fold_in(key, shard)``: results depend on ``shards``.
     """
 
     def sample(params, context, y, x_init, key, guide):
