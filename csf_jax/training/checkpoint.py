@@ -4,11 +4,16 @@ A checkpoint stores ``state = {"params", "opt_state", "step"}`` and ``meta`` (pr
 network and training configs, dataset id, seed, validation history). Saves are synchronous and
 atomic (orbax writes a temporary directory and renames it when complete), so a ``kill -9`` at any
 moment leaves the last complete checkpoint intact; the next run resumes from it.
+
+A checkpoint damaged afterwards (a truncated array file or meta record, a missing folder) is not
+fatal: ``restore_intact`` resumes from the newest checkpoint that restores, moves each newer,
+damaged one aside to ``<dir>.damaged-<step>`` (never deleting it) and says so in one line.
 """
 
 from __future__ import annotations
 
 import os
+from typing import Callable
 
 import jax
 import orbax.checkpoint as ocp
@@ -40,13 +45,18 @@ def read_meta(mngr: ocp.CheckpointManager, step: int | None = None) -> dict | No
     return mngr.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))["meta"]
 
 
+class CheckpointMismatch(ValueError):
+    """An intact checkpoint made for another problem, network, dataset or seed."""
+
+
 def check_identity(found: dict, expected: dict, where: str) -> None:
-    """Raise ValueError naming both sides if ``found`` was made for something else."""
+    """Raise CheckpointMismatch (a ValueError) naming both sides if ``found`` was made for
+    something else."""
     diffs = [k for k in IDENTITY if found.get(k) != expected.get(k)]
     if diffs:
         lines = "; ".join(f"{k}: checkpoint has {found.get(k)!r}, requested {expected.get(k)!r}"
                           for k in diffs)
-        raise ValueError(f"checkpoint {where} does not match the requested run ({lines}). Use "
+        raise CheckpointMismatch(f"checkpoint {where} does not match the requested run ({lines}). Use "
                          f"another --out directory, or the matching configuration.")
 
 
@@ -58,3 +68,68 @@ def restore(mngr: ocp.CheckpointManager, abstract_state, step: int | None = None
     out = mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(target),
                                                      meta=ocp.args.JsonRestore()))
     return out["state"], out["meta"]
+
+
+def _reason(part: str, error: Exception) -> str:
+    """One line saying which part of a checkpoint failed and how (the error's first line, cut)."""
+    first = (str(error).strip().splitlines() or [""])[0]
+    first = first if len(first) <= 100 else first[:97] + "..."
+    return f"its {part} cannot be read: {type(error).__name__}: {first}"
+
+
+def _try_restore(mngr: ocp.CheckpointManager, abstract_state, step: int, expected: dict):
+    """``(state, meta, None)`` if ``step`` restores, else ``(None, None, reason)``. A readable
+    checkpoint made for another run raises CheckpointMismatch (that is no damage)."""
+    where = os.path.join(str(mngr.directory), str(step))
+    try:
+        found = read_meta(mngr, step)
+    except Exception as e:  # noqa: BLE001  (orbax, tensorstore, JSON and OS errors alike)
+        return None, None, _reason("meta record", e)
+    if not isinstance(found, dict):
+        return None, None, f"its meta record is not a JSON object: {found!r:.60}"
+    check_identity(found, expected, where)
+    try:
+        state, meta = restore(mngr, abstract_state, step)
+    except Exception as e:  # noqa: BLE001
+        return None, None, _reason("state", e)
+    return state, meta, None
+
+
+def move_aside(directory: str, step: int) -> str:
+    """Rename ``directory/step`` to a free ``directory.damaged-<step>[.i]``; returns the new path."""
+    base = f"{os.path.abspath(directory)}.damaged-{step}"
+    target, i = base, 1
+    while os.path.exists(target):
+        target, i = f"{base}.{i}", i + 1
+    os.rename(os.path.join(directory, str(step)), target)
+    return target
+
+
+def restore_intact(mngr: ocp.CheckpointManager, abstract_state, expected: dict,
+                   log: Callable[[str], None]):
+    """Restore the newest intact checkpoint of ``mngr``: ``(state, meta)``, or None if there is none.
+
+    Newer checkpoints that fail to restore are moved aside (``move_aside``) with one ``log`` line
+    each, naming the folder, the reason and where it went; ``mngr`` is reloaded so that later saves
+    of those steps do not collide. If every checkpoint is damaged, nothing is moved and a
+    RuntimeError names the directory and each reason. An intact checkpoint of another run raises
+    CheckpointMismatch.
+    """
+    directory = str(mngr.directory)
+    damaged = []
+    for step in sorted(mngr.all_steps(), reverse=True):
+        state, meta, reason = _try_restore(mngr, abstract_state, step, expected)
+        if reason is None:
+            for bad, why in damaged:
+                aside = move_aside(directory, bad)
+                log(f"checkpoint {os.path.join(directory, str(bad))} is damaged ({why}); moved it "
+                    f"to {aside} and resuming from step {step}")
+            if damaged:
+                mngr.reload()
+            return state, meta
+        damaged.append((step, reason))
+    if damaged:
+        reasons = "; ".join(f"step {s}: {why}" for s, why in damaged)
+        raise RuntimeError(f"no intact checkpoint in {directory} ({reasons}); move that directory "
+                           f"away to start afresh")
+    return None

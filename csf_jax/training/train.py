@@ -1,7 +1,8 @@
 """The offline training loop: encoder and score net jointly, optax Adam with a step decay.
 
-Resumable: the loop restores the latest checkpoint of ``out_dir`` if there is one (after checking it
-was made for the same problem, network, data and seed) and continues. Batches are a pure function of
+Resumable: the loop restores the latest intact checkpoint of ``out_dir`` if there is one (after
+checking it was made for the same problem, network, data and seed) and continues; newer, damaged
+checkpoints are moved aside with a message (``checkpoint.restore_intact``). Batches are a pure function of
 ``(seed, step)``, so a resumed run sees exactly the batches an uninterrupted one would have.
 """
 
@@ -128,10 +129,9 @@ def train(problem: str, data: Dataset, out_dir: str, *, network: networks.Networ
     meta["train"]["set_sizes"] = list(config.set_sizes)
     mngr = checkpoint.manager(out_dir, config.save_every)
     state = init_state(jax.random.key(config.seed), network, dim, config)
-    found = checkpoint.read_meta(mngr)
-    if found is not None:
-        checkpoint.check_identity(found, meta, out_dir)
-        state, found = checkpoint.restore(mngr, state)
+    restored = checkpoint.restore_intact(mngr, state, meta, lambda msg: _log(True, msg))
+    if restored is not None:
+        state, found = restored
         meta["valid_loss"], meta["seconds"] = found["valid_loss"], found["seconds"]
         _log(verbose, f"[train {problem}] resumed from step {int(state.step)} in {out_dir}")
     valid = make_batch(data, dataclasses.replace(config, set_sizes=(max(config.set_sizes),)), 0,
