@@ -299,7 +299,48 @@ def check_params(params: dict, config: NetworkConfig, dim: int, name: str = "par
         raise ValueError(f"{name} do not match the network config {config}: their structure "
                          f"differs from what this config builds (another architecture?)")
     for (path, exp), (_, got) in zip(exp_leaves, got_leaves):
-        if tuple(exp.shape) != tuple(jnp.shape(got)):
+        shape = tuple(got.shape) if hasattr(got, "shape") else tuple(jnp.shape(got))
+        if tuple(exp.shape) != shape:
             raise ValueError(f"{name} do not match the network config {config} at "
-                             f"{jax.tree_util.keystr(path)}: shape {tuple(jnp.shape(got))}, "
+                             f"{jax.tree_util.keystr(path)}: shape {shape}, "
                              f"config expects {tuple(exp.shape)}")
+
+
+def mismatched_field(shapes, config: NetworkConfig, dim: int):
+    """Which ``NetworkConfig`` field (or ``"dim"``) made ``shapes`` differ from ``config``.
+
+    shapes: a params-like pytree whose leaves have ``.shape`` (arrays, ``ShapeDtypeStruct``s).
+    Tries the sizes of the first mismatching leaf for each size field and the state dimension, and
+    1..8 for the fields that change the structure (``blocks``, ``score_layers``); returns
+    ``(field, value)`` for the first change that makes every shape fit, or None. Only for error
+    paths: each try costs one ``jax.eval_shape`` (about 0.1 s).
+    """
+    got = {jax.tree_util.keystr(p): tuple(x.shape)
+           for p, x in jax.tree_util.tree_flatten_with_path(shapes)[0]}
+
+    def fits(cfg, d):
+        want = jax.tree_util.tree_flatten_with_path(_expected_params(cfg, d))[0]
+        return (len(want) == len(got) and
+                all(got.get(jax.tree_util.keystr(p)) == tuple(x.shape) for p, x in want))
+
+    want = jax.tree_util.tree_flatten_with_path(_expected_params(config, dim))[0]
+    bad = [(got[k], tuple(x.shape)) for k, x in ((jax.tree_util.keystr(p), x) for p, x in want)
+           if k in got and got[k] != tuple(x.shape)]
+    sizes = sorted(set(bad[0][0]) - set(bad[0][1])) if bad else []
+    tries = [("dim", v) for v in sizes] + [(n, v) for v in sizes for n in _POSITIVE_INT_FIELDS]
+    if len(want) != len(got):
+        tries += [(n, v) for n in ("blocks", "score_layers") for v in range(1, 9)]
+    for name, value in tries:
+        if name == "dim":
+            if fits(config, value):
+                return name, value
+            continue
+        if value == getattr(config, name):
+            continue
+        try:
+            candidate = dataclasses.replace(config, **{name: value})
+        except ValueError:
+            continue
+        if fits(candidate, dim):
+            return name, value
+    return None
