@@ -1,7 +1,8 @@
 """csf_jax: the Conditional Score-based Filter (Zeng, Gan, Chen, Shi) in JAX/Flax.
 
 Entry points:
-  ``csf_jax.filter(params, obs, ensemble, *, problem=..., key=...)``: the CSF online stage.
+  ``csf_jax.filter(trained, obs, ensemble, *, problem=..., key=...)``: the CSF online stage
+    (``trained``: a ``Pretrained``, the checked route; raw params; or None for the exact prior).
   ``csf_jax.simulate(problem, key)``: truth and observations of a ``StateSpaceModel``.
   ``csf_jax.problems.get(name)``: the paper's problems.
   ``csf_jax.load_pretrained(name)``: the shipped trained prior of a problem.
@@ -18,13 +19,14 @@ from csf_jax.metrics import rmse
 from csf_jax.networks import NetworkConfig, init_params
 from csf_jax.prior import PriorScore, exact_mixture_prior, learned_prior
 from csf_jax.pretrained import load_pretrained
+from csf_jax.trained import Pretrained
 from csf_jax.ssm import (ObservationNoise, StateSpaceModel, cauchy_noise, gaussian_noise,
                          log_likelihood, propagate, shock_steps, simulate)
 
 __version__ = "0.1.0"
 
 __all__ = ["CSFConfig", "FilterResult", "GuidanceConfig", "NetworkConfig", "ObservationNoise",
-           "PriorScore", "SFConfig", "StateSpaceModel", "cauchy_noise", "ensemble_kalman_filter",
+           "Pretrained", "PriorScore", "SFConfig", "StateSpaceModel", "cauchy_noise", "ensemble_kalman_filter",
            "exact_mixture_prior", "filter", "gaussian_noise", "init_params", "kalman_filter",
            "learned_prior", "load_pretrained", "log_likelihood", "metrics", "particle_filter", "problems",
            "propagate", "rmse", "score_filter", "shock_steps", "simulate"]

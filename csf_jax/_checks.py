@@ -88,3 +88,19 @@ def check_result_finite(name: str, result) -> None:
             f"(the ensemble diverged). Check the model's drift for blow-up and, for CSF, use the "
             f"stable guidance (GuidanceConfig(mode='clipped')); pass check_finite=False to get the "
             f"raw result instead.")
+
+
+def promote(obs, ensemble):
+    """``obs (K, m)`` and ``ensemble (N, d)`` as arrays of their common float dtype
+    (``jnp.result_type``: a float16 ensemble with float32 obs runs in float32; float64 obs with a
+    float32 ensemble in float64 under x64). Inputs are already checked to be floating."""
+    obs, ensemble = jnp.asarray(obs), jnp.asarray(ensemble)
+    dtype = jnp.result_type(obs.dtype, ensemble.dtype)
+    return obs.astype(dtype), ensemble.astype(dtype)
+
+
+def check_sigma_max(network, config, name: str) -> None:
+    """A learned score net is trained for one VE SDE scale: the sampler must use the same."""
+    if network.sigma_max != config.sigma_max:
+        raise ValueError(f"{name}: the network config has sigma_max={network.sigma_max}, but the "
+                         f"sampler's config.sigma_max={config.sigma_max}; they must agree")

@@ -59,6 +59,7 @@ import numpy as np  # noqa: E402
 import csf_jax  # noqa: E402
 from csf_jax import CSFConfig, SFConfig, problems  # noqa: E402
 from csf_jax.pretrained import load_pretrained  # noqa: E402
+from experiments._cli import name_list, nonnegative_int, particle_count, positive_int  # noqa: E402
 
 METHODS = ("csf", "sf", "enkf", "pf")
 LABELS = {"csf": "CSF", "sf": "SF", "enkf": "EnKF", "pf": "PF"}
@@ -121,14 +122,12 @@ def method_fn(method: str, model, config: CSFConfig, sf: SFConfig, pretrained, p
               return_ensembles: bool = False):
     """``(obs (K, m), ens (N, d), key) -> FilterResult`` for one run of ``method``.
 
-    pretrained: a ``csf_jax.pretrained.Pretrained`` for CSF, or None for the exact mixture prior.
+    pretrained: a ``csf_jax.pretrained.Pretrained`` for CSF (passed whole: the filter checks it
+    was trained for ``model``), or None for the exact mixture prior.
     """
     if method == "csf":
-        params = None if pretrained is None else pretrained.params
-        network = None if pretrained is None else pretrained.network
-        return lambda o, e, k: csf_jax.filter(params, o, e, problem=model, key=k, config=config,
-                                              network=network, progress=progress,
-                                              return_ensembles=return_ensembles)
+        return lambda o, e, k: csf_jax.filter(pretrained, o, e, problem=model, key=k, config=config,
+                                              progress=progress, return_ensembles=return_ensembles)
     if method == "sf":
         return lambda o, e, k: csf_jax.score_filter(o, e, problem=model, key=k, config=sf,
                                                     sampler=config, progress=progress,
@@ -386,14 +385,15 @@ def main(argv=None):
     p = argparse.ArgumentParser(prog="python -m experiments.run", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("problem", choices=problems.NAMES)
-    p.add_argument("--methods", default=",".join(METHODS))
-    p.add_argument("--runs", type=int, default=None, help="independent runs (default 10)")
-    p.add_argument("--particles", type=int, default=None, help="N (default 1000)")
-    p.add_argument("--steps", type=int, default=None, help="reverse steps L (default 500)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--methods", type=name_list(METHODS, "method"), default=list(METHODS))
+    p.add_argument("--runs", type=positive_int, default=None, help="independent runs (default 10)")
+    p.add_argument("--particles", type=particle_count, default=None, help="N (default 1000)")
+    p.add_argument("--steps", type=particle_count, default=None,
+                   help="reverse steps L, at least 2 (default 500)")
+    p.add_argument("--seed", type=nonnegative_int, default=0)
     p.add_argument("--out", default=None, help="directory for results.json, figures and the cache")
-    p.add_argument("--batch", type=int, default=None, help="runs per batch (see above)")
-    p.add_argument("--sf-runs", type=int, default=None,
+    p.add_argument("--batch", type=positive_int, default=None, help="runs per batch (see above)")
+    p.add_argument("--sf-runs", type=positive_int, default=None,
                    help="run SF on the first R runs only (default: all; on CPU 2, see above)")
     p.add_argument("--prior", choices=("pretrained", "exact"), default="pretrained",
                    help="CSF prior: the shipped model (default) or the exact Gaussian mixture")
@@ -402,11 +402,15 @@ def main(argv=None):
                    help="a first look and CI: 2 runs, N=100, L=50, 10 filter steps, SF budget "
                         "20 steps (warm-up 100)")
     args = p.parse_args(argv)
+    if args.out is not None and os.path.exists(args.out) and not os.path.isdir(args.out):
+        p.error(f"argument --out: {args.out!r} exists and is not a directory")
     q = QUICK if args.quick else {}
-    runs = args.runs or q.get("runs", 10)
-    particles = args.particles or q.get("particles", 1000)
-    steps = args.steps or q.get("steps", 500)
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    runs = q.get("runs", 10) if args.runs is None else args.runs
+    particles = q.get("particles", 1000) if args.particles is None else args.particles
+    steps = q.get("steps", 500) if args.steps is None else args.steps
+    if args.sf_runs is not None and args.sf_runs > runs:
+        p.error(f"argument --sf-runs: {args.sf_runs} exceeds the {runs} runs")
+    methods = args.methods
     sf = QUICK_SF if args.quick else SFConfig()
     sf_runs = args.sf_runs
     if sf_runs is None and "sf" in methods and jax.default_backend() == "cpu":

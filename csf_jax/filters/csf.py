@@ -21,8 +21,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from csf_jax import _checks, networks
-from csf_jax.filters.result import FilterResult
+from csf_jax import _checks, networks, trained
+from csf_jax.filters.result import FilterResult, mark_nonfinite
 from csf_jax.guidance import GuidanceConfig, dps_gradient, guidance_displacement
 from csf_jax.networks import NetworkConfig
 from csf_jax.prior import PriorScore, exact_mixture_prior, learned_prior
@@ -178,14 +178,17 @@ def csf_filter(params, obs, ensemble, *, problem: StateSpaceModel, key,
     """Filter ``obs`` with the Conditional Score-based Filter.
 
     Args:
-      params: trained network parameters ``{"encoder": ..., "score": ...}``, or None for the exact
-        Gaussian-mixture prior (no training).
-      obs: (K, m) observations ``y_1 .. y_K``.
+      params: a trained prior (``csf_jax.load_pretrained``'s ``Pretrained``: the checked route,
+        see ``csf_jax.trained.unpack``), raw network parameters ``{"encoder": ..., "score": ...}``
+        (only their shapes can be checked), or None for the exact Gaussian-mixture prior.
+      obs: (K, m) observations ``y_1 .. y_K``; float, promoted with ``ensemble`` to their common
+        float dtype.
       ensemble: (N, d) initial ensemble (time 0).
       problem: the ``StateSpaceModel`` (static: hashable).
       key: a ``jax.random.key``; same key, same result.
       prior: the prior-score source; by default exact mixture if params is None, else learned.
-      network: the network config of ``params`` (default ``NetworkConfig()``).
+      network: the network config of raw ``params`` (default ``NetworkConfig()``; a ``Pretrained``
+        brings its own, and a different one here is refused).
       config: online-stage settings (``CSFConfig``).
       return_ensembles: also return the (K, N, d) posterior ensembles.
       check_finite: when called outside jit/vmap, raise FloatingPointError if the filter diverged.
@@ -195,11 +198,15 @@ def csf_filter(params, obs, ensemble, *, problem: StateSpaceModel, key,
         be divisible by it.
 
     Returns:
-      ``FilterResult`` with mean and std (K, d), and ensembles if asked for. Works under ``jax.jit``
-      (bind the keyword arguments statically) and ``jax.vmap`` over ``(obs, ensemble, key)``.
+      ``FilterResult`` with mean and std (K, d), ``finite`` (K,), and ensembles if asked for. Works
+      under ``jax.jit`` (bind the keyword arguments statically) and ``jax.vmap`` over
+      ``(obs, ensemble, key)``; there a non-finite observation or mean is not raised but reported:
+      from that step on ``finite`` is False and mean and std are NaN (``mark_nonfinite``).
     """
     _checks.check_filter_inputs(obs, ensemble, problem, name="csf_jax.filter")
     _checks.check_key(key, name="csf_jax.filter")
+    params, network = trained.unpack(params, problem, network)
+    obs, ensemble = _checks.promote(obs, ensemble)
     prior = _prior_for(params, prior, network, config.sigma_max)
     if not isinstance(shards, int) or shards < 1 or ensemble.shape[-2] % shards:
         raise ValueError(f"csf_jax.filter: shards must be a positive int dividing the number of "
@@ -210,9 +217,10 @@ def csf_filter(params, obs, ensemble, *, problem: StateSpaceModel, key,
                              "params, or params=None without prior= for the exact mixture prior")
         networks.check_params(params, network or NetworkConfig(), problem.dim,
                               name="csf_jax.filter: params")
-    result = _csf_scan(params, jnp.asarray(obs), jnp.asarray(ensemble), key, model=problem,
-                       prior=prior, config=config, return_ensembles=return_ensembles,
-                       progress=progress, shards=shards)
+        _checks.check_sigma_max(network or NetworkConfig(), config, "csf_jax.filter")
+    result = mark_nonfinite(_csf_scan(params, obs, ensemble, key, model=problem, prior=prior,
+                                      config=config, return_ensembles=return_ensembles,
+                                      progress=progress, shards=shards), obs)
     if check_finite:
         _checks.check_result_finite("csf_jax.filter", result)
     return result

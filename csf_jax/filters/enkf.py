@@ -15,8 +15,9 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
 
-from csf_jax._checks import check_filter_inputs, check_key, check_result_finite, is_concrete
-from csf_jax.filters.result import FilterResult
+from csf_jax._checks import (check_filter_inputs, check_key, check_result_finite, is_concrete,
+                             promote)
+from csf_jax.filters.result import FilterResult, mark_nonfinite
 from csf_jax.ssm import StateSpaceModel, propagate
 
 
@@ -26,7 +27,8 @@ def ensemble_kalman_filter(obs, ensemble, *, problem: StateSpaceModel, key,
     """Run the stochastic EnKF.
 
     Args:
-      obs: (K, m) observations ``y_1 .. y_K``.
+      obs: (K, m) observations ``y_1 .. y_K``; float, promoted with ``ensemble`` to their common
+        float dtype.
       ensemble: (N, d) ensemble at time 0.
       problem: the state-space model (static: a hashable NamedTuple).
       key: a JAX PRNG key; the same key gives the same result.
@@ -35,8 +37,9 @@ def ensemble_kalman_filter(obs, ensemble, *, problem: StateSpaceModel, key,
       check_finite: raise FloatingPointError if the mean becomes non-finite (concrete runs only).
 
     Returns:
-      ``FilterResult(mean (K, d), std (K, d), ensembles (K, N, d) | None, ess=None)``, mean and
-      std (N-1 denominator) of the analysis ensemble.
+      ``FilterResult(mean (K, d), std (K, d), ensembles (K, N, d) | None, ess=None, finite (K,))``,
+      mean and std (N-1 denominator) of the analysis ensemble. Under jit/vmap, mean and std are
+      NaN and ``finite`` False from a non-finite step on (``mark_nonfinite``).
     """
     check_filter_inputs(obs, ensemble, problem, name="ensemble_kalman_filter")
     check_key(key, name="ensemble_kalman_filter")
@@ -46,8 +49,9 @@ def ensemble_kalman_filter(obs, ensemble, *, problem: StateSpaceModel, key,
     if is_concrete(inflation) and not (np.isfinite(inflation) and float(inflation) > 0):
         raise ValueError(f"ensemble_kalman_filter: inflation must be positive and finite, got "
                          f"{inflation}")
-    result = _ensemble_kalman_filter(jnp.asarray(obs), jnp.asarray(ensemble), key, inflation,
-                                     problem=problem, return_ensembles=bool(return_ensembles))
+    obs, ensemble = promote(obs, ensemble)
+    result = mark_nonfinite(_ensemble_kalman_filter(obs, ensemble, key, inflation, problem=problem,
+                                                    return_ensembles=bool(return_ensembles)), obs)
     if check_finite:
         check_result_finite("ensemble_kalman_filter", result)
     return result
@@ -88,15 +92,14 @@ def _enkf_step(model: StateSpaceModel, return_ensembles: bool, inflation, ensemb
 @functools.partial(jax.jit, static_argnames=("problem", "return_ensembles"))
 def _ensemble_kalman_filter(obs, ensemble, key, inflation, *, problem: StateSpaceModel,
                             return_ensembles: bool) -> FilterResult:
-    """The jitted scan over time; inputs already checked. ``obs (K, m)``, ``ensemble (N, d)``."""
-    dtype = jnp.result_type(obs.dtype, ensemble.dtype)
+    """The jitted scan over time; inputs already checked and promoted to one float dtype.
+    ``obs (K, m)``, ``ensemble (N, d)``."""
     keys = jax.random.split(key, obs.shape[0])
-    inflation = jnp.asarray(inflation, dtype)
+    inflation = jnp.asarray(inflation, ensemble.dtype)
 
     def step(ens, inputs):
         k, y = inputs
         return _enkf_step(problem, return_ensembles, inflation, ens, k, y)
 
-    _, (mean, std, ensembles) = jax.lax.scan(step, ensemble.astype(dtype),
-                                             (keys, obs.astype(dtype)))
+    _, (mean, std, ensembles) = jax.lax.scan(step, ensemble, (keys, obs))
     return FilterResult(mean=mean, std=std, ensembles=ensembles)

@@ -14,19 +14,20 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 
 from csf_jax._checks import check_finite
-from csf_jax.filters.result import FilterResult
+from csf_jax.filters.result import FilterResult, mark_nonfinite
 from csf_jax.problems.linear import LinearGaussian
 
 
 def kalman_filter(obs, *, lg: LinearGaussian) -> FilterResult:
     """Filtered means and stds of ``x_1 .. x_K`` given ``obs (K, m) = y_1 .. y_K``.
 
-    Returns ``FilterResult(mean (K, d), std (K, d))`` with ``std = sqrt(diag(P_{k|k}))``; no
-    ensembles, no ESS. Use ``kalman_filter_cov`` for the full covariances.
+    Returns ``FilterResult(mean (K, d), std (K, d), finite (K,))`` with
+    ``std = sqrt(diag(P_{k|k}))``; no ensembles, no ESS. Use ``kalman_filter_cov`` for the full
+    covariances.
     """
     means, covs = kalman_filter_cov(obs, lg)
     std = jnp.sqrt(jnp.clip(jnp.diagonal(covs, axis1=-2, axis2=-1), 0.0))
-    return FilterResult(mean=means, std=std)
+    return mark_nonfinite(FilterResult(mean=means, std=std), jnp.asarray(obs))
 
 
 def kalman_filter_cov(obs, lg: LinearGaussian):

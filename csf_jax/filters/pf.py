@@ -14,8 +14,8 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.special import logsumexp
 
-from csf_jax._checks import check_filter_inputs, check_key, check_result_finite
-from csf_jax.filters.result import FilterResult
+from csf_jax._checks import check_filter_inputs, check_key, check_result_finite, promote
+from csf_jax.filters.result import FilterResult, mark_nonfinite
 from csf_jax.ssm import StateSpaceModel, log_likelihood, propagate
 
 
@@ -24,7 +24,8 @@ def particle_filter(obs, ensemble, *, problem: StateSpaceModel, key, return_ense
     """Run the bootstrap particle filter.
 
     Args:
-      obs: (K, m) observations ``y_1 .. y_K``.
+      obs: (K, m) observations ``y_1 .. y_K``; float, promoted with ``ensemble`` to their common
+        float dtype.
       ensemble: (N, d) equally weighted particles at time 0.
       problem: the state-space model (static: a hashable NamedTuple).
       key: a JAX PRNG key; the same key gives the same result.
@@ -32,13 +33,16 @@ def particle_filter(obs, ensemble, *, problem: StateSpaceModel, key, return_ense
       check_finite: raise FloatingPointError if the mean becomes non-finite (concrete runs only).
 
     Returns:
-      ``FilterResult(mean (K, d), std (K, d), ensembles (K, N, d) | None, ess (K,))``; mean and
-      std are from the weighted particles, ``ess = 1 / sum(w^2)`` before resampling.
+      ``FilterResult(mean (K, d), std (K, d), ensembles (K, N, d) | None, ess (K,), finite (K,))``;
+      mean and std are from the weighted particles, ``ess = 1 / sum(w^2)`` before resampling.
+      Under jit/vmap, mean and std are NaN and ``finite`` False from a non-finite step on
+      (``mark_nonfinite``).
     """
     check_filter_inputs(obs, ensemble, problem, name="particle_filter")
     check_key(key, name="particle_filter")
-    result = _particle_filter(jnp.asarray(obs), jnp.asarray(ensemble), key, problem=problem,
-                              return_ensembles=bool(return_ensembles))
+    obs, ensemble = promote(obs, ensemble)
+    result = mark_nonfinite(_particle_filter(obs, ensemble, key, problem=problem,
+                                             return_ensembles=bool(return_ensembles)), obs)
     if check_finite:
         check_result_finite("particle_filter", result)
     return result
@@ -107,14 +111,13 @@ def _pf_step(model: StateSpaceModel, return_ensembles: bool, ensemble, key, y):
 @functools.partial(jax.jit, static_argnames=("problem", "return_ensembles"))
 def _particle_filter(obs, ensemble, key, *, problem: StateSpaceModel,
                      return_ensembles: bool) -> FilterResult:
-    """The jitted scan over time; inputs already checked. ``obs (K, m)``, ``ensemble (N, d)``."""
-    dtype = jnp.result_type(obs.dtype, ensemble.dtype)
+    """The jitted scan over time; inputs already checked and promoted to one float dtype.
+    ``obs (K, m)``, ``ensemble (N, d)``."""
     keys = jax.random.split(key, obs.shape[0])
 
     def step(ens, inputs):
         k, y = inputs
         return _pf_step(problem, return_ensembles, ens, k, y)
 
-    _, (mean, std, ensembles, ess) = jax.lax.scan(step, ensemble.astype(dtype),
-                                                  (keys, obs.astype(dtype)))
+    _, (mean, std, ensembles, ess) = jax.lax.scan(step, ensemble, (keys, obs))
     return FilterResult(mean=mean, std=std, ensembles=ensembles, ess=ess)

@@ -21,7 +21,7 @@ import optax
 
 from csf_jax import _checks, networks
 from csf_jax.filters.csf import CSFConfig, particle_sampler
-from csf_jax.filters.result import FilterResult
+from csf_jax.filters.result import FilterResult, mark_nonfinite
 from csf_jax.prior import unconditional_prior
 from csf_jax.sde import marginal_std
 from csf_jax.ssm import StateSpaceModel
@@ -107,7 +107,8 @@ def score_filter(obs, ensemble, *, problem: StateSpaceModel, key, config: SFConf
     """Filter ``obs`` with the score-based filter (a score net trained online at every step).
 
     Args:
-      obs: (K, m) observations ``y_1 .. y_K``.
+      obs: (K, m) observations ``y_1 .. y_K``; float, promoted with ``ensemble`` to their common
+        float dtype.
       ensemble: (N, d) initial ensemble (time 0).
       problem: the ``StateSpaceModel`` (static: hashable).
       key: a ``jax.random.key``; it also initialises the score net. Same key, same result.
@@ -119,13 +120,16 @@ def score_filter(obs, ensemble, *, problem: StateSpaceModel, key, config: SFConf
         (``jax.debug.callback``; once per step under ``vmap``).
 
     Returns:
-      ``FilterResult`` with mean and std (K, d). Works under ``jax.jit`` and ``jax.vmap`` over
-      ``(obs, ensemble, key)``.
+      ``FilterResult`` with mean and std (K, d) and ``finite`` (K,). Works under ``jax.jit`` and
+      ``jax.vmap`` over ``(obs, ensemble, key)``; there mean and std are NaN and ``finite`` False
+      from a non-finite step on (``mark_nonfinite``).
     """
     _checks.check_filter_inputs(obs, ensemble, problem, name="score_filter")
     _checks.check_key(key, name="score_filter")
-    result = _sf_scan(jnp.asarray(obs), jnp.asarray(ensemble), key, model=problem, config=config,
-                      sampler=sampler, return_ensembles=return_ensembles, progress=progress)
+    obs, ensemble = _checks.promote(obs, ensemble)
+    result = mark_nonfinite(_sf_scan(obs, ensemble, key, model=problem, config=config,
+                                     sampler=sampler, return_ensembles=return_ensembles,
+                                     progress=progress), obs)
     if check_finite:
         _checks.check_result_finite("score_filter", result)
     return result
