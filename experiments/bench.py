@@ -47,6 +47,8 @@ from typing import Optional
 
 import numpy as np
 
+from experiments._cli import int_list, nonnegative_int, particle_count, positive_int
+
 IMPLS = ("jax", "torch_eager", "torch_compile")
 TRAJ_IMPLS = ("jax_vmap", "jax_map", "torch_eager_loop")
 _TAG = "@@bench "
@@ -385,23 +387,45 @@ def _ints(s: str) -> list[int]:
     return [int(v) for v in s.split(",") if v]
 
 
+def _checked(parse):
+    """An argparse ``type`` that validates a comma-separated list and keeps it as text (``_ints``
+    reads it later, and ``--quick`` overrides it as text)."""
+
+    def check(text: str) -> str:
+        parse(text)
+        return text
+
+    check.__name__ = parse.__name__
+    return check
+
+
+def _parse_or_exit(parser, flag: str, parse, text: str):
+    """``parse(text)``, or argparse's one-line error for ``flag``."""
+    try:
+        return parse(text)
+    except argparse.ArgumentTypeError as e:
+        parser.error(f"argument {flag}: {e}")
+
+
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--out", default="out/bench")
     p.add_argument("--quick", action="store_true",
                    help="smoke test: d=10, N=256, L=50, 1 repeat, 10 runs x 2 filter steps")
-    p.add_argument("--dims", default="1,10,20")
-    p.add_argument("--particles", default="256,1000,4000")
-    p.add_argument("--steps", type=int, default=500, help="reverse steps L")
-    p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--filter-steps", type=int, default=2, help="filter steps per timed run")
+    p.add_argument("--dims", type=_checked(int_list(1)), default="1,10,20")
+    p.add_argument("--particles", type=_checked(int_list(2)), default="256,1000,4000")
+    p.add_argument("--steps", type=particle_count, default=500, help="reverse steps L")
+    p.add_argument("--repeats", type=positive_int, default=3)
+    p.add_argument("--filter-steps", type=positive_int, default=2,
+                   help="filter steps per timed run")
     p.add_argument("--impls", default=",".join(IMPLS))
-    p.add_argument("--traj-runs", type=int, default=10)
-    p.add_argument("--traj-steps", type=int, default=10, help="filter steps per run (K)")
-    p.add_argument("--traj-dim", type=int, default=10)
-    p.add_argument("--traj-particles", type=int, default=1000)
-    p.add_argument("--traj-repeats", type=int, default=None, help="default: --repeats")
-    p.add_argument("--torch-threads", type=int, default=None, help="default: torch's own")
+    p.add_argument("--traj-runs", type=nonnegative_int, default=10, help="0: no trajectory rows")
+    p.add_argument("--traj-steps", type=positive_int, default=10, help="filter steps per run (K)")
+    p.add_argument("--traj-dim", type=positive_int, default=10)
+    p.add_argument("--traj-particles", type=particle_count, default=1000)
+    p.add_argument("--traj-repeats", type=positive_int, default=None, help="default: --repeats")
+    p.add_argument("--torch-threads", type=positive_int, default=None,
+                   help="default: torch's own")
     p.add_argument("--omp-wait-policy", choices=("passive", "active", "unset"), default="unset",
                    help="OMP_WAIT_POLICY of the torch workers ('unset': leave the environment "
                         "alone). With other processes on the cores, OpenMP's spin-waiting stalls "
@@ -413,7 +437,8 @@ def parse_args(argv=None):
     p.add_argument("--worker", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if not args.worker:
-        args.shards = (os.cpu_count() or 1) if args.shards == "auto" else int(args.shards)
+        args.shards = ((os.cpu_count() or 1) if args.shards == "auto" else
+                       _parse_or_exit(p, "--shards", positive_int, args.shards))
     if args.quick:
         args.dims, args.particles, args.steps, args.repeats = "10", "256", 50, 1
         args.filter_steps, args.traj_steps, args.traj_particles, args.traj_dim = 1, 2, 256, 10

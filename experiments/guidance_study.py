@@ -17,6 +17,7 @@ import jax.numpy as jnp
 
 import csf_jax
 from csf_jax import CSFConfig, GuidanceConfig, problems
+from experiments._cli import name_list, nonnegative_int, particle_count, positive_int
 
 VARIANTS = (("raw", 1.0), ("clipped", 0.25), ("clipped", 0.5), ("clipped", 1.0),
             ("clipped", 3.0), ("normalized", 1.0))
@@ -24,15 +25,16 @@ VARIANTS = (("raw", 1.0), ("clipped", 0.25), ("clipped", 0.5), ("clipped", 1.0),
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    p.add_argument("--problems", default="double_well,cubic10_indep")
-    p.add_argument("--particles", type=int, default=200)
-    p.add_argument("--runs", type=int, default=2)
-    p.add_argument("--steps", type=int, default=500, help="reverse steps L")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--problems", type=name_list(problems.NAMES, "problem"),
+                   default=["double_well", "cubic10_indep"])
+    p.add_argument("--particles", type=particle_count, default=200)
+    p.add_argument("--runs", type=positive_int, default=2)
+    p.add_argument("--steps", type=particle_count, default=500, help="reverse steps L, at least 2")
+    p.add_argument("--seed", type=nonnegative_int, default=0)
     args = p.parse_args(argv)
     print(f"| problem | guidance | clip | RMSE | non-finite steps | seconds |")
     print(f"|---|---|---|---|---|---|")
-    for name in args.problems.split(","):
+    for name in args.problems:
         model = problems.get(name)
         keys = jax.random.split(jax.random.key(args.seed), args.runs)
         truth, obs = jax.vmap(lambda k: csf_jax.simulate(model, k))(keys)

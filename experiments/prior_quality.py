@@ -29,6 +29,7 @@ from csf_jax.prior import learned_prior, unconditional_prior
 from csf_jax.sde import marginal_std
 from csf_jax.training import generate, load
 from csf_jax.training.single import fit_unconditional
+from experiments._cli import nonnegative_int, positive_int
 
 PRIOR_ONLY = CSFConfig(guidance=GuidanceConfig(mode="none"))
 
@@ -51,9 +52,9 @@ def main(argv=None):
     p = argparse.ArgumentParser(prog="python -m experiments.prior_quality", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("problem", choices=sorted(set(MODEL_FOR.values())))
-    p.add_argument("--ensembles", type=int, default=8)
-    p.add_argument("--scratch-steps", type=int, default=2000)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--ensembles", type=positive_int, default=8)
+    p.add_argument("--scratch-steps", type=positive_int, default=2000)
+    p.add_argument("--seed", type=nonnegative_int, default=0)
     args = p.parse_args(argv)
     model = load_pretrained(args.problem)
     data_dir = os.path.join("runs", "pretrained", args.problem, "data")

@@ -22,6 +22,7 @@ import time
 
 from experiments import run as run_mod  # first: it sets XLA's host devices before jax loads
 from csf_jax import problems  # noqa: E402  (isort: after run_mod on purpose)
+from experiments._cli import name_list, positive_int  # noqa: E402
 
 # The paper's Table (RMSE over 10 runs) and its per-step time table (s, RTX 4090).
 PAPER_RMSE = {  # as printed in the paper
@@ -158,20 +159,20 @@ def parse_sf_runs(text, names) -> dict:
 def main(argv=None):
     p = argparse.ArgumentParser(prog="python -m experiments.table", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--problems", default=",".join(COLUMNS))
+    p.add_argument("--problems", type=name_list(problems.NAMES, "problem"), default=list(COLUMNS))
     p.add_argument("--out", default="results")
-    p.add_argument("--runs", type=int, default=10)
+    p.add_argument("--runs", type=positive_int, default=10)
     p.add_argument("--sf-runs", default=None,
                    help="run SF on fewer runs (CPU budget): R for every problem, or "
                         "problem=R,... for those named")
     p.add_argument("--docs", default=os.path.join("docs", "results.md"))
     p.add_argument("--write-only", action="store_true", help="only rewrite the results page")
     args = p.parse_args(argv)
-    names = [n.strip() for n in args.problems.split(",") if n.strip()]
-    for n in names:
-        if n not in problems.NAMES:
-            raise SystemExit(f"unknown problem {n!r}; known: {', '.join(problems.NAMES)}")
-    sf_runs = parse_sf_runs(args.sf_runs, names)
+    names = args.problems
+    try:
+        sf_runs = parse_sf_runs(args.sf_runs, names)
+    except SystemExit as e:
+        p.error(str(e))
     command = "python -m experiments.table" + (f" --sf-runs {args.sf_runs}" if args.sf_runs else "")
     if not args.write_only:
         for n in names:

@@ -19,6 +19,7 @@ import sys
 from csf_jax import networks, problems
 from csf_jax.pretrained import DATASETS, TRAIN, export
 from csf_jax.training import TrainConfig, generate, load, train
+from experiments._cli import int_list, nonnegative_int, particle_count, positive_int
 
 
 def main(argv=None):
@@ -26,33 +27,36 @@ def main(argv=None):
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("problem", choices=problems.NAMES)
     p.add_argument("--out", default=None, help="run directory (default runs/<problem>)")
-    p.add_argument("--steps", type=int, default=None)
-    p.add_argument("--trajectories", type=int, default=None)
-    p.add_argument("--particles", type=int, default=None)
-    p.add_argument("--keep", type=int, default=None)
-    p.add_argument("--stride", type=int, default=None)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--save-every", type=int, default=None)
-    p.add_argument("--lr-decay-every", type=int, default=None,
+    p.add_argument("--steps", type=positive_int, default=None)
+    p.add_argument("--trajectories", type=particle_count, default=None,
+                   help="M, at least 2 (training and validation trajectories)")
+    p.add_argument("--particles", type=particle_count, default=None)
+    p.add_argument("--keep", type=particle_count, default=None)
+    p.add_argument("--stride", type=positive_int, default=None)
+    p.add_argument("--seed", type=nonnegative_int, default=0)
+    p.add_argument("--save-every", type=positive_int, default=None)
+    p.add_argument("--lr-decay-every", type=positive_int, default=None,
                    help="halve the learning rate every this many steps (default 1500)")
-    p.add_argument("--batch-sets", type=int, default=None)
-    p.add_argument("--targets", type=int, default=None, help="x0 targets per set")
-    p.add_argument("--set-sizes", default=None, help="comma-separated encoder subset sizes")
+    p.add_argument("--batch-sets", type=positive_int, default=None)
+    p.add_argument("--targets", type=positive_int, default=None, help="x0 targets per set")
+    p.add_argument("--set-sizes", type=int_list(2), default=None,
+                   help="comma-separated encoder subset sizes, each at least 2")
     p.add_argument("--export", default=None, help="write the trained model here")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
 
     base = args.problem if args.problem in DATASETS else "double_well"
-    dcfg = dataclasses.replace(DATASETS[base], seed=args.seed, **{
-        k: v for k, v in (("trajectories", args.trajectories), ("particles", args.particles),
-                          ("keep", args.keep), ("stride", args.stride)) if v is not None})
+    try:
+        dcfg = dataclasses.replace(DATASETS[base], seed=args.seed, **{
+            k: v for k, v in (("trajectories", args.trajectories), ("particles", args.particles),
+                              ("keep", args.keep), ("stride", args.stride)) if v is not None})
+    except ValueError as e:
+        p.error(str(e))
     tcfg = dataclasses.replace(TRAIN.get(args.problem, TrainConfig()), seed=args.seed, **{
         k: v for k, v in (("steps", args.steps), ("save_every", args.save_every),
                           ("lr_decay_every", args.lr_decay_every),
                           ("eval_every", args.save_every), ("batch_sets", args.batch_sets),
-                          ("targets_per_set", args.targets),
-                          ("set_sizes", args.set_sizes and tuple(
-                              int(x) for x in args.set_sizes.split(","))))
+                          ("targets_per_set", args.targets), ("set_sizes", args.set_sizes))
         if v is not None})
     out = args.out or os.path.join("runs", args.problem)
     data_dir = os.path.join(out, "data")
