@@ -19,7 +19,7 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from csf_jax import networks
+from csf_jax import _linalg, networks
 from csf_jax.sde import marginal_std
 
 
@@ -100,3 +100,20 @@ def unconditional_prior(config: networks.NetworkConfig = networks.NetworkConfig(
         return networks.score(params, x, t, code, config)
 
     return PriorScore("unconditional", condition, score)
+
+
+def gaussian_precision(ensemble, inflation: float = 0.0, jitter: float = 1e-6):
+    """Precision ``(C + inflation^2 I)^{-1}`` of the ensemble's Gaussian; ``ensemble: (N, d)`` -> (d, d).
+
+    ``C`` is the sample covariance. It gives the Kalman guidance the covariance of ``x_0 | x_t``,
+    ``P_t = (C^{-1} + I / sigma_t^2)^{-1}``, exact for a Gaussian prior. ``jitter`` times the mean
+    variance (plus a tiny absolute floor) is added to the diagonal, so a collapsed or rank-deficient
+    ensemble (N <= d) still gives a finite precision. Plain-jnp Cholesky (``csf_jax._linalg``).
+    """
+    n, d = ensemble.shape
+    centred = ensemble - ensemble.mean(0)
+    cov = centred.T @ centred / max(n - 1, 1)
+    eye = jnp.eye(d, dtype=ensemble.dtype)
+    floor = jitter * jnp.trace(cov) / d + jnp.finfo(ensemble.dtype).tiny ** 0.5
+    chol = _linalg.cholesky(cov + (inflation ** 2 + floor) * eye)
+    return _linalg.cho_solve(chol[None], eye)

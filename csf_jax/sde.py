@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import jax.numpy as jnp
+import numpy as np
 
 SIGMA_MAX = 25.0
 
@@ -18,6 +19,12 @@ def marginal_std(t, sigma_max: float = SIGMA_MAX):
     """Std of ``x_t | x_0``: ``sqrt((s^(2t) - 1) / (2 ln s))``. ``t``: any shape, in [0, 1]."""
     log_s = jnp.log(sigma_max)
     return jnp.sqrt(jnp.expm1(2.0 * t * log_s) / (2.0 * log_s))
+
+
+def marginal_std_host(t: float, sigma_max: float = SIGMA_MAX) -> float:
+    """:func:`marginal_std` of a Python float, as a Python float (for static grids)."""
+    log_s = np.log(sigma_max)
+    return float(np.sqrt(np.expm1(2.0 * t * log_s) / (2.0 * log_s)))
 
 
 def time_of_std(sigma, sigma_max: float = SIGMA_MAX):
@@ -73,3 +80,30 @@ def reverse_grid(num_steps: int, t_max: float = 1.0, t_min: float = 1e-3) -> Rev
     times = jnp.linspace(t_max, t_min, num_steps)
     step = (t_max - t_min) / (num_steps - 1)
     return ReverseGrid(times=times, dt=jnp.full((num_steps,), step, dtype=times.dtype))
+
+
+def noise_levels(num_steps: int, sigma_start: float, sigma_end: float):
+    """The noise levels of the ancestral sampler (host floats): ``(L + 1,)``, geometric from ``sigma_start`` down
+    to ``sigma_end`` in L levels, then 0 (the last step lands on the clean state).
+
+    A geometric grid spends the steps evenly in ``log sigma``, where the diffused prior changes
+    (the VE marginal std grows like ``s^t``): 50 levels cover 9.8 -> 0.03 at a ratio 1.12 per step.
+    """
+    if num_steps < 1:
+        raise ValueError(f"noise_levels needs num_steps >= 1, got {num_steps}")
+    if not sigma_start >= sigma_end > 0.0:
+        raise ValueError(f"noise_levels needs sigma_start >= sigma_end > 0, got {sigma_start}, "
+                         f"{sigma_end}")
+    return np.concatenate([np.geomspace(sigma_start, sigma_end, num_steps), [0.0]])
+
+
+def bridge(sigma, sigma_next):
+    """The VE bridge ``x_{sigma'} | x_sigma, x_0 = N(rho x_sigma + (1 - rho) x_0, v I)``.
+
+    Returns ``(rho, v)`` with ``rho = sigma'^2 / sigma^2`` and ``v = (sigma^2 - sigma'^2) rho``
+    (exact for the VE SDE, any step size). With ``x_0 | x_sigma ~ N(u, S)`` the step
+    ``x_{sigma'} ~ N(rho x + (1 - rho) u, v I + (1 - rho)^2 S)`` is the exact reverse transition:
+    the ancestral sampler's one step.
+    """
+    rho = jnp.square(sigma_next / sigma)
+    return rho, (jnp.square(sigma) - jnp.square(sigma_next)) * rho

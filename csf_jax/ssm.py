@@ -9,7 +9,7 @@ the callables' closures. ``shock`` acts on the truth only (filters never see it)
 from __future__ import annotations
 
 import math
-from typing import Callable, NamedTuple
+from typing import Callable, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -24,12 +24,32 @@ class ObservationNoise(NamedTuple):
     sample: ``(key, shape)`` -> a draw of that shape.
     gaussian_std: std of the Gaussian that the EnKF uses in its place (the noise's own std if
       Gaussian; for Cauchy the Gaussian with the same central 68% interval).
+    fisher: the Fisher information of one coordinate's noise, ``E[(d log p(w) / dw)^2]``.
+      None: ``1 / gaussian_std^2``. The curvature of CSF's Kalman guidance when ``weight`` is None.
+    weight: optional ``residual (m,) -> (m,)``, the iteratively reweighted least-squares weights
+      ``-(d log p / dw) / w`` of a symmetric noise whose log-density decreases in ``|w|``: the
+      curvature of the Gaussian that touches ``log p`` from below at the residual. For Cauchy
+      ``2 / (scale^2 + w^2)``: an outlier gets a small weight, so the guidance does not chase it
+      (with the Fisher information it would). None: the constant ``fisher_information``.
     """
 
     name: str
     log_prob: Callable[[Array], Array]
     sample: Callable[[Array, tuple], Array]
     gaussian_std: float
+    fisher: Optional[float] = None
+    weight: Optional[Callable[[Array], Array]] = None
+
+    @property
+    def fisher_information(self) -> float:
+        """The per-coordinate Fisher information (``fisher``, or ``1 / gaussian_std^2``)."""
+        return float(self.fisher) if self.fisher is not None else 1.0 / self.gaussian_std ** 2
+
+    def curvature(self, residual: Array) -> Array:
+        """Per-coordinate curvature weights ``(m,)`` of the guidance at ``residual = y - h(x)``."""
+        if self.weight is not None:
+            return self.weight(residual)
+        return jnp.full(residual.shape, self.fisher_information, residual.dtype)
 
 
 def gaussian_noise(std: float) -> ObservationNoise:
@@ -58,7 +78,11 @@ def cauchy_noise(scale: float) -> ObservationNoise:
     def sample(key, shape):
         return scale * jax.random.cauchy(key, shape)
 
-    return ObservationNoise("cauchy", log_prob, sample, cauchy_matched_std(scale))
+    def weight(r):
+        return 2.0 / (scale ** 2 + r * r)
+
+    return ObservationNoise("cauchy", log_prob, sample, cauchy_matched_std(scale),
+                            fisher=1.0 / (2.0 * scale ** 2), weight=weight)
 
 
 def cauchy_matched_std(scale: float) -> float:

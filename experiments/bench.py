@@ -1,19 +1,29 @@
 """Benchmark the CSF online step: csf_jax against the PyTorch port (eager and torch.compile).
 
     python -m experiments.bench [--out DIR] [--quick] [--dims 1,10,20] [--particles 256,1000,4000]
-        [--steps 500] [--repeats 3] [--filter-steps 2] [--impls jax,torch_eager,torch_compile]
+        [--guidance kalman|clipped|raw|normalized|none] [--steps L] [--repeats 3]
+        [--filter-steps 2] [--impls jax,torch_eager,torch_compile]
         [--traj-runs 10] [--traj-steps 10] [--traj-dim 10] [--traj-particles 1000]
         [--torch-threads T] [--omp-wait-policy passive|active|unset] [--shards auto|S]
 
 For every state dimension d and ensemble size N it measures one filter step (propagate + encode +
-L reverse steps with the learned prior and clipped DPS guidance; random-init weights of the default
-``NetworkConfig``; d = 1 is the double well, d > 1 the cubic sensor ``cubic<d>_indep``):
+L reverse steps with the learned prior; random-init weights of the default ``NetworkConfig``; d = 1
+is the double well, d > 1 the cubic sensor ``cubic<d>_indep``), with the sampler of
+``--guidance``, the same on both sides:
+
+* ``kalman`` (default, ``CSFConfig()``'s sampler): the ancestral sampler with Kalman guidance,
+  L = ``CSFConfig().reverse_steps`` = 50 levels (``--steps`` defaults to it);
+* ``clipped`` (the old default; ``raw``, ``normalized``, ``none`` likewise): Euler-Maruyama with
+  DPS guidance, the paper's sampler; pass ``--steps 500`` for the paper's L.
+
+Implementations:
 
 * ``jax``: ``jax.jit(csf_jax.filter)``; compile_s is trace + lower + XLA compile. On a CPU the
   worker gets one XLA host device per core (``--xla_force_host_platform_device_count``) and the
   filter splits the particles over them (``shards``; ``--shards 1`` turns this off).
 * ``torch_eager``: ``experiments.torch_csf`` with a Python loop over the reverse steps.
-* ``torch_compile``: the same with the reverse step under ``torch.compile(dynamic=False)``;
+* ``torch_compile``: the same with the reverse step (one level) under
+  ``torch.compile(dynamic=False)``;
   compile_s is the first call of the step (Dynamo + Inductor, with an empty Inductor cache).
 
 Each implementation runs in its own worker process (clean peak RSS: ``VmHWM`` of /proc/self/status,
@@ -57,6 +67,15 @@ _TAG = "@@bench "
 # --------------------------------------------------------------------------------------------
 # Shared set-up (parent and workers)
 # --------------------------------------------------------------------------------------------
+
+def csf_config(spec: dict):
+    """The ``CSFConfig`` of a worker spec: ``steps`` reverse steps, the sampler of ``guidance``
+    (a ``GuidanceConfig.mode``), every other setting at its default."""
+    from csf_jax import CSFConfig
+    from csf_jax.guidance import GuidanceConfig
+
+    return CSFConfig(reverse_steps=spec["steps"], guidance=GuidanceConfig(mode=spec["guidance"]))
+
 
 def problem_name(d: int) -> tuple[str, dict]:
     """``(name, overrides)`` for ``csf_jax.problems.get``: the double well for d = 1, else the
@@ -124,15 +143,14 @@ def _jax_runner(spec: dict, params: dict, obs: np.ndarray, ens: np.ndarray):
     import jax
 
     import csf_jax
-    from csf_jax import CSFConfig, NetworkConfig, problems
+    from csf_jax import NetworkConfig, problems
 
     name, overrides = problem_name(spec["d"])
     model = problems.get(name, **overrides)
     shards = spec.get("shards", 1)
     shards = shards if shards <= len(jax.local_devices()) and spec["N"] % shards == 0 else 1
     one = functools.partial(csf_jax.filter, problem=model, network=NetworkConfig(),
-                            config=CSFConfig(reverse_steps=spec["steps"]), check_finite=False,
-                            shards=shards)
+                            config=csf_config(spec), check_finite=False, shards=shards)
     params = jax.tree_util.tree_map(jax.numpy.asarray, params)
     if spec["vmap"]:
         fn = jax.jit(jax.vmap(lambda p, o, e, k: one(p, o, e, key=k), in_axes=(None, 0, 0, 0)))
@@ -167,13 +185,13 @@ def _torch_runner(spec: dict, params: dict, obs: np.ndarray, ens: np.ndarray):
     runs are filtered one after the other."""
     import torch
 
-    from csf_jax import CSFConfig, NetworkConfig
+    from csf_jax import NetworkConfig
     from experiments import torch_csf as tc
 
     if spec.get("torch_threads"):
         torch.set_num_threads(spec["torch_threads"])
     name, overrides = problem_name(spec["d"])
-    config = CSFConfig(reverse_steps=spec["steps"])
+    config = csf_config(spec)
     nets = tc.flax_to_torch(params, NetworkConfig(), spec["d"])
     problem = tc.torch_problem(name, **overrides)
     step = tc.make_reverse_step(nets, problem, config, compile=spec["compile"])
@@ -181,12 +199,8 @@ def _torch_runner(spec: dict, params: dict, obs: np.ndarray, ens: np.ndarray):
     info = {"torch_threads": torch.get_num_threads()}
     if spec["compile"]:
         sched = tc.schedule(config)
-        x, y = ens_t[0].clone(), obs_t[0, 0]
-        with torch.no_grad():
-            code = nets.encoder(x)
-            t0 = time.perf_counter()
-            step(x, y, code, sched.t_score[0], sched.var[0], sched.g2dt[0], sched.noise_scale[0],
-                 sched.noise_on[0], torch.tensor(1.0), torch.randn_like(x))
+        t0 = time.perf_counter()
+        tc.first_reverse_step(nets, step, sched, ens_t[0].clone(), obs_t[0, 0])
         info["compile_s"] = time.perf_counter() - t0
 
     def run(r):
@@ -301,6 +315,7 @@ def measure(impls, base_spec: dict, args, cache_root: str, repeats: int) -> list
         med = statistics.median(times[impl]) if times[impl] else None
         rows.append({
             "impl": impl, "d": base_spec["d"], "N": base_spec["N"], "steps": base_spec["steps"],
+            "guidance": base_spec["guidance"],
             "kind": base_spec["kind"], "runs": base_spec["runs"],
             "filter_steps": base_spec["filter_steps"],
             "median_s": None if med is None else med / per,
@@ -383,6 +398,13 @@ def tables(rows: list[dict]) -> str:
     return "\n".join(out) + "\n"
 
 
+def sampler_line(args) -> str:
+    """One line naming the benchmarked sampler and its L."""
+    if args.guidance == "kalman":
+        return f"ancestral with Kalman guidance (guidance 'kalman'), L = {args.steps} levels"
+    return f"Euler-Maruyama with DPS guidance '{args.guidance}', L = {args.steps} steps"
+
+
 def _ints(s: str) -> list[int]:
     return [int(v) for v in s.split(",") if v]
 
@@ -408,13 +430,22 @@ def _parse_or_exit(parser, flag: str, parse, text: str):
 
 
 def parse_args(argv=None):
+    from csf_jax.filters.csf import CSFConfig
+    from csf_jax.guidance import MODES, GuidanceConfig
+
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--out", default="out/bench")
     p.add_argument("--quick", action="store_true",
-                   help="smoke test: d=10, N=256, L=50, 1 repeat, 10 runs x 2 filter steps")
+                   help="smoke test: d=10, N=256, 1 repeat of 1 filter step; trajectories: 10 "
+                        "runs x 2 filter steps at d=10, N=256 (L from --steps)")
     p.add_argument("--dims", type=_checked(int_list(1)), default="1,10,20")
     p.add_argument("--particles", type=_checked(int_list(2)), default="256,1000,4000")
-    p.add_argument("--steps", type=particle_count, default=500, help="reverse steps L")
+    p.add_argument("--guidance", choices=MODES, default=GuidanceConfig().mode,
+                   help="the sampler: 'kalman' (default: ancestral with Kalman guidance) or a "
+                        "DPS mode with Euler-Maruyama (the old default: --guidance clipped "
+                        "--steps 500)")
+    p.add_argument("--steps", type=particle_count, default=CSFConfig().reverse_steps,
+                   help="reverse steps L (default: CSFConfig().reverse_steps)")
     p.add_argument("--repeats", type=positive_int, default=3)
     p.add_argument("--filter-steps", type=positive_int, default=2,
                    help="filter steps per timed run")
@@ -440,7 +471,7 @@ def parse_args(argv=None):
         args.shards = ((os.cpu_count() or 1) if args.shards == "auto" else
                        _parse_or_exit(p, "--shards", positive_int, args.shards))
     if args.quick:
-        args.dims, args.particles, args.steps, args.repeats = "10", "256", 50, 1
+        args.dims, args.particles, args.repeats = "10", "256", 1
         args.filter_steps, args.traj_steps, args.traj_particles, args.traj_dim = 1, 2, 256, 10
     return args
 
@@ -468,7 +499,7 @@ def main(argv=None):
             obs, ens = make_data(d, n, k, runs)
             np.savez(data_path, obs=obs, ens=ens)
             return {"params": params_path, "data": data_path, "d": d, "N": n, "steps": args.steps,
-                    "filter_steps": k, "runs": runs}
+                    "guidance": args.guidance, "filter_steps": k, "runs": runs}
 
         for d in _ints(args.dims):
             for n in _ints(args.particles):
@@ -488,10 +519,11 @@ def main(argv=None):
     with open(os.path.join(args.out, "bench.json"), "w") as f:
         json.dump({"machine": info, "args": vars(args), "rows": rows}, f, indent=1)
     md = tables(rows)
+    print(f"Sampler: {sampler_line(args)}")
     with open(os.path.join(args.out, "bench.md"), "w") as f:
         f.write(f"Machine: {info['cpu']}, {info['cores']} cores; jax {info['jax']}, torch "
                 f"{info['torch']}; load average {info['loadavg_start']} -> "
-                f"{info['loadavg_end']}\n\n" + md)
+                f"{info['loadavg_end']}\n\nSampler: {sampler_line(args)}\n\n" + md)
     print(md)
 
 

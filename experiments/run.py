@@ -1,7 +1,8 @@
 """The main job: run CSF, SF, EnKF and PF on one of the paper's problems (paper Sec. 3).
 
     python -m experiments.run double_well [--methods csf,sf,enkf,pf] [--runs 10] [--particles 1000]
-        [--steps 500] [--seed 0] [--out DIR] [--batch B] [--prior pretrained|exact] [--quick]
+        [--steps 50] [--guidance kalman] [--seed 0] [--out DIR] [--batch B]
+        [--prior pretrained|exact] [--quick]
 
 Simulates ``--runs`` independent truth/observation trajectories (run i uses the key
 ``fold_in(key(seed), i)``, so a run does not depend on how many others there are), runs every method
@@ -57,13 +58,14 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import csf_jax  # noqa: E402
-from csf_jax import CSFConfig, SFConfig, problems  # noqa: E402
+from csf_jax import CSFConfig, GuidanceConfig, SFConfig, problems  # noqa: E402
+from csf_jax.guidance import MODES  # noqa: E402
 from csf_jax.pretrained import load_pretrained  # noqa: E402
 from experiments._cli import name_list, nonnegative_int, particle_count, positive_int  # noqa: E402
 
 METHODS = ("csf", "sf", "enkf", "pf")
 LABELS = {"csf": "CSF", "sf": "SF", "enkf": "EnKF", "pf": "PF"}
-QUICK = dict(runs=2, particles=100, steps=50, num_steps=10)
+QUICK = dict(runs=2, particles=100, steps=20, num_steps=10)
 QUICK_SF = SFConfig(train_steps=20, warmup_steps=100)
 CPU_SF_RUNS = 2  # the CLI's default SF runs on a CPU (module doc)
 
@@ -264,10 +266,11 @@ def default_batch(method: str, runs: int) -> int:
     return max(1, min(runs, jax.local_device_count()))
 
 
-def run(name: str, methods=METHODS, runs: int = 10, particles: int = 1000, steps: int = 500,
-        seed: int = 0, num_steps: Optional[int] = None, prior: str = "pretrained",
+def run(name: str, methods=METHODS, runs: int = 10, particles: int = 1000,
+        steps: int = CSFConfig().reverse_steps, seed: int = 0, num_steps: Optional[int] = None, prior: str = "pretrained",
         out: Optional[str] = None, batch: Optional[int] = None, sf: SFConfig = SFConfig(),
-        method_runs: Optional[dict] = None, progress: bool = True, figures: bool = True) -> dict:
+        method_runs: Optional[dict] = None, progress: bool = True, figures: bool = True,
+        guidance: str = GuidanceConfig().mode) -> dict:
     """Simulate ``runs`` trajectories, run ``methods`` on them; returns the results dict (and writes
     ``results.json`` and figures under ``out``).
 
@@ -280,7 +283,7 @@ def run(name: str, methods=METHODS, runs: int = 10, particles: int = 1000, steps
     overrides = {} if num_steps is None else {"num_steps": num_steps}
     model = problems.get(name, **overrides)
     pretrained = load_pretrained(name) if prior == "pretrained" and "csf" in methods else None
-    config = CSFConfig(reverse_steps=steps)
+    config = CSFConfig(reverse_steps=steps, guidance=GuidanceConfig(mode=guidance))
     truth, obs, shocks, ens, keys = simulate_runs(model, runs, particles, seed)
     truth, shocks_np = np.asarray(truth), np.asarray(shocks)
     K = obs.shape[1]
@@ -389,7 +392,11 @@ def main(argv=None):
     p.add_argument("--runs", type=positive_int, default=None, help="independent runs (default 10)")
     p.add_argument("--particles", type=particle_count, default=None, help="N (default 1000)")
     p.add_argument("--steps", type=particle_count, default=None,
-                   help="reverse steps L, at least 2 (default 500)")
+                   help="reverse steps L, at least 2 (default 50)")
+    p.add_argument("--guidance", choices=MODES, default=GuidanceConfig().mode,
+                   help="CSF's and SF's sampler: 'kalman' (default, ancestral with Kalman "
+                        "guidance) or a DPS mode with Euler-Maruyama (the paper's: --guidance "
+                        "clipped --steps 500)")
     p.add_argument("--seed", type=nonnegative_int, default=0)
     p.add_argument("--out", default=None, help="directory for results.json, figures and the cache")
     p.add_argument("--batch", type=positive_int, default=None, help="runs per batch (see above)")
@@ -399,7 +406,7 @@ def main(argv=None):
                    help="CSF prior: the shipped model (default) or the exact Gaussian mixture")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--quick", action="store_true",
-                   help="a first look and CI: 2 runs, N=100, L=50, 10 filter steps, SF budget "
+                   help="a first look and CI: 2 runs, N=100, L=20, 10 filter steps, SF budget "
                         "20 steps (warm-up 100)")
     args = p.parse_args(argv)
     if args.out is not None and os.path.exists(args.out) and not os.path.isdir(args.out):
@@ -407,7 +414,7 @@ def main(argv=None):
     q = QUICK if args.quick else {}
     runs = q.get("runs", 10) if args.runs is None else args.runs
     particles = q.get("particles", 1000) if args.particles is None else args.particles
-    steps = q.get("steps", 500) if args.steps is None else args.steps
+    steps = q.get("steps", CSFConfig().reverse_steps) if args.steps is None else args.steps
     if args.sf_runs is not None and args.sf_runs > runs:
         p.error(f"argument --sf-runs: {args.sf_runs} exceeds the {runs} runs")
     methods = args.methods
@@ -415,18 +422,18 @@ def main(argv=None):
     sf_runs = args.sf_runs
     if sf_runs is None and "sf" in methods and jax.default_backend() == "cpu":
         sf_runs = min(runs, CPU_SF_RUNS)
-    print(f"{args.problem}: {runs} runs, N={particles}, L={steps}, methods {', '.join(methods)}; "
+    print(f"{args.problem}: {runs} runs, N={particles}, L={steps} ({args.guidance}), methods {', '.join(methods)}; "
           f"SF budget {sf.train_steps} Adam steps x {sf.batch} per filter step "
           f"(+{sf.warmup_steps} warm-up)", file=sys.stderr)
     results = run(args.problem, methods, runs, particles, steps, args.seed,
                   num_steps=q.get("num_steps"), prior=args.prior, out=args.out, batch=args.batch,
                   sf=sf, method_runs=None if sf_runs is None else {"sf": sf_runs},
-                  progress=not args.no_progress)
+                  progress=not args.no_progress, guidance=args.guidance)
     print(table(results))
     if args.out:
         print(f"wrote {os.path.join(args.out, 'results.json')}", file=sys.stderr)
-    if args.quick or runs < 10 or particles != 1000 or steps != 500:
-        print("This is not the paper's setting (10 runs, N=1000, L=500).", file=sys.stderr)
+    if args.quick or runs < 10 or particles != 1000:
+        print("This is not the table's setting (10 runs, N=1000).", file=sys.stderr)
     if sf_runs is not None and sf_runs < runs and args.sf_runs is None:
         print(f"SF ran on {sf_runs} of {runs} runs (CPU budget); --sf-runs {runs} for all.",
               file=sys.stderr)

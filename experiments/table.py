@@ -3,7 +3,8 @@
     python -m experiments.table [--problems double_well,...] [--out results] [--runs 10]
         [--sf-runs 5 | --sf-runs cubic20_corr=5,...] [--docs docs/results.md] [--write-only]
 
-Runs ``experiments.run`` (N=1000, L=500, seed 0, pretrained priors) on each problem into
+Runs ``experiments.run`` (N=1000, seed 0, pretrained priors, ``--guidance``/``--steps``: the
+sampler, default CSFConfig's) on each problem into
 ``OUT/<problem>/`` (``results.json``, figures and the per-batch cache), then rewrites the generated
 part of the results page (between its ``<!-- table:start -->`` and ``<!-- table:end -->`` markers)
 from every ``results.json`` found, beside the paper's values. Resumable: run it again after an
@@ -22,7 +23,7 @@ import time
 
 from experiments import run as run_mod  # first: it sets XLA's host devices before jax loads
 from csf_jax import problems  # noqa: E402  (isort: after run_mod on purpose)
-from experiments._cli import name_list, positive_int  # noqa: E402
+from experiments._cli import name_list, particle_count, positive_int  # noqa: E402
 
 # The paper's Table (RMSE over 10 runs) and its per-step time table (s, RTX 4090).
 PAPER_RMSE = {  # as printed in the paper
@@ -165,6 +166,10 @@ def main(argv=None):
     p.add_argument("--sf-runs", default=None,
                    help="run SF on fewer runs (CPU budget): R for every problem, or "
                         "problem=R,... for those named")
+    p.add_argument("--steps", type=particle_count, default=run_mod.CSFConfig().reverse_steps,
+                   help="CSF's and SF's reverse steps L")
+    p.add_argument("--guidance", choices=run_mod.MODES, default=run_mod.GuidanceConfig().mode,
+                   help="CSF's and SF's sampler (the paper's: --guidance clipped --steps 500)")
     p.add_argument("--docs", default=os.path.join("docs", "results.md"))
     p.add_argument("--write-only", action="store_true", help="only rewrite the results page")
     args = p.parse_args(argv)
@@ -174,12 +179,16 @@ def main(argv=None):
     except SystemExit as e:
         p.error(str(e))
     command = "python -m experiments.table" + (f" --sf-runs {args.sf_runs}" if args.sf_runs else "")
+    if (args.steps, args.guidance) != (run_mod.CSFConfig().reverse_steps,
+                                       run_mod.GuidanceConfig().mode):
+        command += f" --guidance {args.guidance} --steps {args.steps}"
     if not args.write_only:
         for n in names:
             t0 = time.perf_counter()
             print(f"== {n}", file=sys.stderr, flush=True)
             res = run_mod.run(n, run_mod.METHODS, runs=args.runs, out=os.path.join(args.out, n),
-                              method_runs={"sf": sf_runs[n]} if n in sf_runs else None)
+                              method_runs={"sf": sf_runs[n]} if n in sf_runs else None,
+                              steps=args.steps, guidance=args.guidance)
             print(run_mod.table(res), flush=True)
             print(f"== {n} done in {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
             write_page(args.docs, render(load_results(args.out), command))

@@ -3,20 +3,39 @@
 It computes the same thing as ``csf_jax.filter(params, ...)`` with ``learned_prior``, written the
 way the paper's authors' stack would: PyTorch modules, ``torch.no_grad()`` everywhere except the DPS
 gradient (``torch.autograd.grad`` through the score net), float32, and a Python loop over the L
-reverse steps. Every piece mirrors a csf_jax one:
+reverse steps. Like csf_jax it has two samplers, chosen by ``config.guidance.mode``:
+
+* ``"kalman"`` (the default): the ancestral sampler with Kalman guidance
+  (``csf_jax.filters.csf.ancestral_sample``). The reverse process starts from the prior ensemble
+  noised to ``sigma_1``; at each noise level of ``csf_jax.sde.noise_levels`` Tweedie's ``x0_hat``
+  and the ensemble's Gaussian precision (:func:`gaussian_precision`) give ``x_0 | x_t``, a few
+  Fisher-scoring steps (:func:`kalman_tweedie`) its posterior ``N(u, A^{-1})`` given ``y``,
+  importance resampling over K proposals (:func:`resample_posterior`) one draw of it, and the exact
+  VE bridge the next level. Batched ``torch.linalg`` over the particles; no autograd (the
+  observation ``x^3`` of every problem here has a closed-form Jacobian and likelihood gradient).
+* a DPS mode (``"clipped"``, ``"raw"``, ``"normalized"``, ``"none"``): Euler-Maruyama on the
+  reverse VE SDE with DPS guidance (``csf_jax.filters.csf.posterior_sample``), the paper's sampler.
+
+Every piece mirrors a csf_jax one:
 
 * ``SetEncoder`` / ``ScoreNet``: ``csf_jax.networks`` (weights loaded with :func:`flax_to_torch`).
-* ``marginal_std`` / ``diffusion_sq`` / :func:`schedule`: ``csf_jax.sde`` and the reverse grid
-  ``linspace(1, t_min, L)`` with a constant ``dt`` and a noise-free last step.
-* :func:`guidance_displacement`: ``csf_jax.guidance`` (default "clipped").
-* :func:`torch_problem`: the drift and log-likelihood of ``csf_jax.problems`` (cubic sensors,
-  Cauchy, double/triple well).
+* ``marginal_std`` / ``diffusion_sq`` / ``time_of_std`` / :func:`schedule`: ``csf_jax.sde``; the
+  Euler-Maruyama grid ``linspace(1, t_min, L)`` with a constant ``dt`` and a noise-free last step
+  (:class:`Schedule`), or the ancestral sampler's geometric noise levels and bridge coefficients
+  (:class:`AncestralSchedule`).
+* :func:`guidance_displacement`: ``csf_jax.guidance`` (DPS); :func:`kalman_tweedie` and
+  :func:`resample_posterior`: ``csf_jax.guidance`` (Kalman); :func:`gaussian_precision`:
+  ``csf_jax.prior``.
+* :func:`torch_problem`: the drift, log-likelihood, its gradient, the observation's Jacobian and
+  the noise's Fisher information of ``csf_jax.problems`` (cubic sensors, Cauchy, double/triple
+  well).
 * :func:`filter_step`: one step of ``csf_jax.filters.csf._csf_scan`` (propagate, encode, L reverse
   steps).
 
-:func:`make_reverse_step` returns the per-reverse-step function, eager or wrapped by
-``torch.compile(..., dynamic=False)``. All random draws can be injected (:class:`StepNoise`) so
-that tests feed identical noise to both implementations.
+:func:`make_reverse_step` returns the per-reverse-step function of the configured sampler, eager
+or wrapped by ``torch.compile(..., dynamic=False)``. All random draws can be injected
+(:class:`StepNoise`, :class:`AncestralNoise`) so that tests feed identical noise to both
+implementations.
 """
 
 from __future__ import annotations
@@ -35,6 +54,8 @@ from csf_jax.networks import NetworkConfig, fourier_frequencies
 from csf_jax.problems import CubicConfig, WellConfig
 from csf_jax.problems import config as problem_config
 from csf_jax.problems.cubic import coupling_matrix
+from csf_jax.sde import marginal_std_host
+from csf_jax.sde import noise_levels as host_noise_levels
 
 DTYPE = torch.float32
 FLAX_LN_EPS = 1e-6
@@ -72,23 +93,94 @@ class Schedule(NamedTuple):
     noise_on: torch.Tensor
 
 
-def schedule(config: CSFConfig) -> Schedule:
+def time_of_std(sigma: torch.Tensor, sigma_max: float) -> torch.Tensor:
+    """The time t with ``marginal_std(t) = sigma``, any shape (``csf_jax.sde.time_of_std``, op for
+    op in sigma's dtype)."""
+    log_s = torch.log(torch.tensor(sigma_max, dtype=sigma.dtype))
+    return torch.log1p(2.0 * log_s * torch.square(sigma)) / (2.0 * log_s)
+
+
+def inflated_time(t: torch.Tensor, inflation: float, sigma_max: float) -> torch.Tensor:
+    """The time whose marginal std is ``sqrt(sigma_t^2 + inflation^2)``, any shape
+    (``csf_jax.sde.inflated_time``)."""
+    if inflation == 0.0:
+        return t
+    return time_of_std(torch.sqrt(torch.square(marginal_std(t, sigma_max)) + inflation ** 2),
+                       sigma_max)
+
+
+def em_schedule(config: CSFConfig, dtype: torch.dtype = DTYPE) -> Schedule:
     """The reverse grid of ``csf_jax.sde.reverse_grid`` and its per-step scalars."""
     n = config.reverse_steps
-    t = torch.linspace(1.0, config.t_min, n, dtype=DTYPE)
-    dt = torch.tensor((1.0 - config.t_min) / (n - 1), dtype=DTYPE)
+    t = torch.linspace(1.0, config.t_min, n, dtype=dtype)
+    dt = torch.tensor((1.0 - config.t_min) / (n - 1), dtype=dtype)
     g2dt = diffusion_sq(t, config.sigma_max) * dt
-    noise_on = torch.ones(n, dtype=DTYPE)
+    noise_on = torch.ones(n, dtype=dtype)
     if config.denoise_last:
         noise_on[-1] = 0.0
     var = marginal_std(t, config.sigma_max) ** 2
-    # csf_jax.sde.inflated_time, op for op in float32
-    log_s = torch.log(torch.tensor(config.sigma_max, dtype=DTYPE))
-    sigma_score = torch.sqrt(torch.square(marginal_std(t, config.sigma_max))
-                             + config.prior_inflation ** 2)
-    t_score = torch.log1p(2.0 * log_s * torch.square(sigma_score)) / (2.0 * log_s)
-    return Schedule(t, t_score if config.prior_inflation else t, var, g2dt, torch.sqrt(g2dt),
-                    noise_on)
+    t_score = inflated_time(t, config.prior_inflation, config.sigma_max)
+    return Schedule(t, t_score, var, g2dt, torch.sqrt(g2dt), noise_on)
+
+
+class AncestralSchedule(NamedTuple):
+    """The ancestral sampler's per-level scalars, each ``(L,)`` (index ``[l]`` gives a 0-d tensor),
+    and its settings.
+
+    sigma: the noise levels ``sigma_l`` (``csf_jax.sde.noise_levels`` without its final 0, float32).
+    t_score: ``inflated_time(time_of_std(sigma_l), tau)``, where the prior score is evaluated.
+    rho, noise_scale: ``rho`` and ``sqrt(v)`` of ``csf_jax.sde.bridge(sigma_l, sigma_{l+1})``.
+    first: bool, True at ``l = 0`` (where the Fisher scoring starts from ``x0_hat``).
+    sigma_start: 0-d ``marginal_std(1)``, the noise added to the prior ensemble at the start.
+    inflation: tau, the prior inflation of :func:`gaussian_precision`.
+    proposals: K, the importance-resampling candidates per particle.
+    """
+
+    sigma: torch.Tensor
+    t_score: torch.Tensor
+    rho: torch.Tensor
+    noise_scale: torch.Tensor
+    first: torch.Tensor
+    sigma_start: torch.Tensor
+    inflation: float
+    proposals: int
+
+
+def noise_levels(config: CSFConfig, dtype: torch.dtype = DTYPE) -> torch.Tensor:
+    """``(L + 1,)`` in ``dtype``: the host grid of ``csf_jax.sde.noise_levels`` (geometric from
+    ``sigma_t(1)`` to ``sigma_t(t_min)``, then 0; float64 numpy) rounded once, as csf_jax does."""
+    s = config.sigma_max
+    levels = host_noise_levels(config.reverse_steps, marginal_std_host(1.0, s),
+                               marginal_std_host(config.t_min, s))
+    return torch.tensor(levels, dtype=dtype)
+
+
+def ancestral_schedule(config: CSFConfig, dtype: torch.dtype = DTYPE) -> AncestralSchedule:
+    """The noise levels of ``csf_jax.filters.csf.ancestral_sample`` and their per-level scalars."""
+    levels = noise_levels(config, dtype)
+    sigma, sigma_next = levels[:-1], levels[1:]
+    t_score = inflated_time(time_of_std(sigma, config.sigma_max), config.prior_inflation,
+                            config.sigma_max)
+    rho = torch.square(sigma_next / sigma)
+    var = (torch.square(sigma) - torch.square(sigma_next)) * rho
+    first = torch.arange(config.reverse_steps) == 0
+    sigma_start = marginal_std(torch.tensor(1.0, dtype=dtype), config.sigma_max)
+    return AncestralSchedule(sigma, t_score, rho, torch.sqrt(var), first, sigma_start,
+                             config.prior_inflation, config.guidance.proposals)
+
+
+def uses_kalman(config: CSFConfig) -> bool:
+    """Whether ``config`` selects the ancestral sampler with Kalman guidance
+    (``csf_jax.filters.csf.uses_kalman``)."""
+    return config.guidance.mode == "kalman"
+
+
+def schedule(config: CSFConfig, dtype: torch.dtype = DTYPE):
+    """The configured sampler's schedule: :class:`AncestralSchedule` for ``"kalman"``, else the
+    Euler-Maruyama :class:`Schedule`; tensors in ``dtype`` (float64 only for tests: the port is
+    float32 like csf_jax by default)."""
+    make = ancestral_schedule if uses_kalman(config) else em_schedule
+    return make(config, dtype)
 
 
 # --------------------------------------------------------------------------------------------
@@ -254,9 +346,14 @@ def flax_to_torch(params: dict, config: NetworkConfig, dim: Optional[int] = None
 # --------------------------------------------------------------------------------------------
 
 class TorchProblem(NamedTuple):
-    """The parts of a ``StateSpaceModel`` the online step needs, batched over particles.
+    """The parts of a ``StateSpaceModel`` the online step needs, batched over particles. Every
+    problem here observes ``h(x) = x^3`` per coordinate (m = d).
 
-    drift: ``x (N, d) -> (N, d)``.  loglik: ``(y (m,), x0 (N, d)) -> (N,)`` up to a constant.
+    drift: ``x (N, d) -> (N, d)``.  loglik: ``(y (m,), x0 (..., d)) -> (...)`` up to a constant.
+    loglik_grad: ``(y (m,), x0 (N, d)) -> (N, d)``, its gradient in ``x0`` (closed form).
+    observe_jacobian: ``x (N, d) -> (N, m, d)``, ``dh/dx`` (dense, as ``jax.jacfwd`` gives it).
+    weight: ``(y (m,), x (N, d)) -> (N, m)``, the guidance's curvature weights at ``y - h(x)``
+    (``ObservationNoise.curvature``).
     """
 
     name: str
@@ -264,10 +361,22 @@ class TorchProblem(NamedTuple):
     process_std: float
     drift: Callable[[torch.Tensor], torch.Tensor]
     loglik: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+    loglik_grad: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+    observe_jacobian: Callable[[torch.Tensor], torch.Tensor]
+    weight: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+
+
+class CubicSensor(NamedTuple):
+    """``y = x^3 + w`` with i.i.d. noise w: the likelihood pieces of :class:`TorchProblem`."""
+
+    loglik: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+    loglik_grad: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+    observe_jacobian: Callable[[torch.Tensor], torch.Tensor]
+    weight: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
 
 def _noise_loglik(kind: str, scale: float) -> Callable[[torch.Tensor], torch.Tensor]:
-    """Residual ``(N, m) -> (N,)``: Gaussian ``-0.5 r^2 / scale^2``, Cauchy
+    """Residual ``(..., m) -> (...)``: Gaussian ``-0.5 r^2 / scale^2``, Cauchy
     ``-log1p((r / scale)^2)``, summed over the coordinates."""
     if kind == "gaussian":
         inv_var = 1.0 / scale**2
@@ -275,17 +384,44 @@ def _noise_loglik(kind: str, scale: float) -> Callable[[torch.Tensor], torch.Ten
     return lambda r: -torch.log1p((r / scale) ** 2).sum(-1)
 
 
+def _noise_score(kind: str, scale: float) -> Callable[[torch.Tensor], torch.Tensor]:
+    """Residual ``(..., m) -> (..., m)``: the derivative of :func:`_noise_loglik`'s terms,
+    ``-r / scale^2`` (Gaussian) or ``-2 r / (scale^2 + r^2)`` (Cauchy)."""
+    if kind == "gaussian":
+        inv_var = 1.0 / scale**2
+        return lambda r: -inv_var * r
+    return lambda r: -2.0 * r / (scale**2 + r * r)
+
+
+def _noise_weight(kind: str, scale: float) -> Callable[[torch.Tensor], torch.Tensor]:
+    """Residual ``(..., m) -> (..., m)``: the guidance's curvature weights, ``1 / scale^2``
+    (Gaussian) or the reweighted least-squares ``2 / (scale^2 + r^2)`` (Cauchy)."""
+    if kind == "gaussian":
+        inv_var = 1.0 / scale**2
+        return lambda r: torch.full_like(r, inv_var)
+    return lambda r: 2.0 / (scale**2 + r * r)
+
+
+def _cubic_sensor(kind: str, scale: float) -> CubicSensor:
+    """The likelihood of ``y = x^3 + w``: ``grad = -h'(x) * noise_score(y - x^3)`` with
+    ``h'(x) = 3 x^2``; the Jacobian is ``diag(3 x^2)``; curvature weights of ``y - x^3``."""
+    loglik, score = _noise_loglik(kind, scale), _noise_score(kind, scale)
+    weight = _noise_weight(kind, scale)
+    return CubicSensor(lambda y, x0: loglik(y - x0**3),
+                       lambda y, x0: -3.0 * x0 * x0 * score(y - x0**3),
+                       lambda x: torch.diag_embed(3.0 * x * x), lambda y, x: weight(y - x**3))
+
+
 def _cubic(c: CubicConfig) -> TorchProblem:
     a_t = torch.from_numpy(coupling_matrix(c.dim).T.copy()) if c.correlated else None
 
     def drift(x):
-        f = torch.cos(x) if a_t is None else x @ a_t + torch.cos(x)
+        f = torch.cos(x) if a_t is None else x @ a_t.to(x.dtype) + torch.cos(x)
         return x + f * c.dt
 
-    noise = _noise_loglik(c.noise, c.obs_scale)
     kind = "corr" if c.correlated else "indep"
     name = "cauchy" if c.noise == "cauchy" else f"cubic{c.dim}_{kind}"
-    return TorchProblem(name, c.dim, c.process_std, drift, lambda y, x0: noise(y - x0**3))
+    return TorchProblem(name, c.dim, c.process_std, drift, *_cubic_sensor(c.noise, c.obs_scale))
 
 
 def _well(c: WellConfig) -> TorchProblem:
@@ -300,9 +436,8 @@ def _well(c: WellConfig) -> TorchProblem:
         step = -grad_v(x) * c.dt
         return x + step if c.include_state else step
 
-    noise = _noise_loglik("gaussian", c.obs_std)
     return TorchProblem(f"{c.wells}_well", 1, math.sqrt(c.dt) * c.process_std, drift,
-                        lambda y, x0: noise(y - x0**3))
+                        *_cubic_sensor("gaussian", c.obs_std))
 
 
 def torch_problem(name: str, **overrides) -> TorchProblem:
@@ -313,7 +448,7 @@ def torch_problem(name: str, **overrides) -> TorchProblem:
 
 
 # --------------------------------------------------------------------------------------------
-# The online step
+# The online step: Euler-Maruyama with DPS guidance
 # --------------------------------------------------------------------------------------------
 
 def guidance_displacement(config: GuidanceConfig, grad: torch.Tensor, loglik: torch.Tensor,
@@ -347,13 +482,11 @@ def dps_gradient(score_net: ScoreNet, loglik: Callable, y: torch.Tensor, x: torc
     return s.detach(), grad, ll.detach()
 
 
-def make_reverse_step(nets: Networks, problem: TorchProblem, config: CSFConfig,
-                      compile: bool = False) -> Callable:
+def make_em_step(nets: Networks, problem: TorchProblem, config: CSFConfig) -> Callable:
     """The Euler-Maruyama step ``x <- x + g^2 dt (s + guide * guidance) + noise_on g sqrt(dt) eps``.
 
     Returns ``step(x (N, d), y (m,), code (C,), t, var, g2dt, noise_scale, noise_on, guide,
-    eps (N, d)) -> x (N, d)``, the scalars 0-d tensors. ``compile=True`` wraps the same function
-    in :func:`compile_step`.
+    eps (N, d)) -> x (N, d)``, the scalars 0-d tensors.
     """
     score_net, loglik, guidance = nets.score, problem.loglik, config.guidance
 
@@ -365,6 +498,106 @@ def make_reverse_step(nets: Networks, problem: TorchProblem, config: CSFConfig,
             disp = guide * guidance_displacement(guidance, grad, ll, g2dt, noise_scale)
         return x + g2dt * s + disp + noise_on * noise_scale * eps
 
+    return step
+
+
+# --------------------------------------------------------------------------------------------
+# The online step: the ancestral sampler with Kalman guidance
+# --------------------------------------------------------------------------------------------
+
+def gaussian_precision(ensemble: torch.Tensor, inflation: float = 0.0,
+                       jitter: float = 1e-6) -> torch.Tensor:
+    """``csf_jax.prior.gaussian_precision``: ``(C + (inflation^2 + floor) I)^{-1}`` of the sample
+    covariance C, ``floor = jitter * trace(C) / d + sqrt(tiny)``; ``ensemble (N, d)`` -> ``(d, d)``.
+    """
+    n, d = ensemble.shape
+    centred = ensemble - ensemble.mean(0)
+    cov = centred.T @ centred / max(n - 1, 1)
+    eye = torch.eye(d, dtype=ensemble.dtype)
+    floor = jitter * torch.trace(cov) / d + torch.finfo(ensemble.dtype).tiny ** 0.5
+    chol = torch.linalg.cholesky_ex(cov + (inflation ** 2 + floor) * eye).L
+    # csf_jax solves for the rows (cho_solve over the batch of eye's rows): the transpose of ours
+    return torch.cholesky_solve(eye, chol).mT
+
+
+def kalman_tweedie(problem: TorchProblem, y: torch.Tensor, x0_hat: torch.Tensor,
+                   prior_precision: torch.Tensor, u: torch.Tensor, guide: torch.Tensor,
+                   iterations: int):
+    """``csf_jax.guidance.kalman_tweedie``: ``iterations`` Gauss-Newton steps per particle,
+    ``u <- u + A^{-1} (P^{-1} (x0_hat - u) + guide grad log p(y | u))``,
+    ``A = P^{-1} + guide J^T diag(W(u)) J``, ``J = dh/du``.
+
+    x0_hat, u: ``(N, d)`` (u: the previous level's solution).  prior_precision: ``(d, d)``
+    ``P^{-1}``.  guide: 0-d.  Returns ``(u (N, d), chol (N, d, d))``, ``chol chol^T = A`` at the
+    last linearisation point.
+    """
+    for _ in range(iterations):
+        jac = problem.observe_jacobian(u)
+        grad = problem.loglik_grad(y, u)
+        chol = torch.linalg.cholesky_ex(
+            prior_precision + guide * (jac.mT * problem.weight(y, u)[..., None, :]) @ jac).L
+        rhs = (x0_hat - u) @ prior_precision.mT + guide * grad
+        u = u + torch.cholesky_solve(rhs[..., None], chol)[..., 0]
+    return u, chol
+
+
+def resample_posterior(loglik: Callable, y: torch.Tensor, x0_hat: torch.Tensor,
+                       prior_precision: torch.Tensor, u: torch.Tensor, chol: torch.Tensor,
+                       guide: torch.Tensor, z: torch.Tensor,
+                       gumbel: Optional[torch.Tensor]) -> torch.Tensor:
+    """``csf_jax.guidance.resample_posterior``: one draw per particle of
+    ``N(x_0; x0_hat, P) p(y | x_0)`` by importance resampling of K Laplace candidates
+    ``u + chol^{-T} z``.
+
+    x0_hat, u: ``(N, d)``.  chol: ``(N, d, d)``.  z: ``(K, N, d)`` standard normal.  gumbel:
+    ``(K, N)`` standard Gumbel (the categorical draw is ``argmax(log_w + gumbel)``, as
+    ``jax.random.categorical``), or None for K = 1 (the Laplace draw itself). Returns ``(N, d)``.
+    """
+    cand = u + torch.linalg.solve_triangular(chol.mT, z[..., None], upper=True)[..., 0]
+    if gumbel is None:
+        return cand[0]
+    diff = cand - x0_hat
+    log_w = (-0.5 * torch.einsum("knd,de,kne->kn", diff, prior_precision, diff)
+             + guide * loglik(y, cand) + 0.5 * torch.sum(z * z, -1))
+    pick = torch.argmax(log_w + gumbel, 0)
+    return torch.take_along_dim(cand, pick[None, :, None], 0)[0]
+
+
+def make_ancestral_step(nets: Networks, problem: TorchProblem, config: CSFConfig) -> Callable:
+    """One level of ``csf_jax.filters.csf.ancestral_sample``: Tweedie, Kalman guidance,
+    importance resampling, VE bridge.
+
+    Returns ``step(x (N, d), u (N, d), first, y (m,), code (C,), precision (d, d), t, sigma, rho,
+    noise_scale, guide, z_post (K, N, d), gumbel (K, N) or None, z_bridge (N, d)) -> (x, u)``, the
+    scalars 0-d tensors (``first`` bool: start the Fisher scoring from ``x0_hat``).
+    """
+    score_net, guidance = nets.score, config.guidance
+
+    def step(x, u, first, y, code, precision, t, sigma, rho, noise_scale, guide, z_post, gumbel,
+             z_bridge):
+        x0_hat = x + sigma ** 2 * score_net(x, t, code)
+        u = torch.where(first, x0_hat, u)
+        prior_precision = precision + torch.eye(x.shape[-1], dtype=x.dtype) / sigma ** 2
+        u, chol = kalman_tweedie(problem, y, x0_hat, prior_precision, u, guide,
+                                 guidance.iterations)
+        x0 = resample_posterior(problem.loglik, y, x0_hat, prior_precision, u, chol, guide, z_post,
+                                gumbel if guidance.proposals > 1 else None)
+        return rho * x + (1.0 - rho) * x0 + noise_scale * z_bridge, u
+
+    return step
+
+
+# --------------------------------------------------------------------------------------------
+# Both samplers
+# --------------------------------------------------------------------------------------------
+
+def make_reverse_step(nets: Networks, problem: TorchProblem, config: CSFConfig,
+                      compile: bool = False) -> Callable:
+    """The configured sampler's per-reverse-step function: :func:`make_ancestral_step` for
+    ``config.guidance.mode == "kalman"``, else :func:`make_em_step`. ``compile=True`` wraps the
+    same function in :func:`compile_step`."""
+    make = make_ancestral_step if uses_kalman(config) else make_em_step
+    step = make(nets, problem, config)
     return compile_step(step) if compile else step
 
 
@@ -384,40 +617,103 @@ def compile_step(step: Callable) -> Callable:
     return run
 
 
-class StepNoise(NamedTuple):
-    """The random draws of one filter step, for injection (all standard normal, float32).
+class AncestralNoise(NamedTuple):
+    """The draws of the ancestral sampler's L levels (float32).
 
-    prop: ``(N, d)`` process noise.  x_init: ``(N, d)``, scaled by sigma_1 to start the reverse SDE.
-    eps: ``(L, N, d)`` the noise of each reverse step, or None to draw it step by step.
+    post: ``(L, K, N, d)`` standard normal, the Laplace candidates.  gumbel: ``(L, K, N)`` standard
+    Gumbel for the resampling pick, or None when K = 1.  bridge: ``(L, N, d)`` standard normal.
+    """
+
+    post: torch.Tensor
+    gumbel: Optional[torch.Tensor]
+    bridge: torch.Tensor
+
+
+class StepNoise(NamedTuple):
+    """The random draws of one filter step, for injection (float32).
+
+    prop: ``(N, d)`` standard normal process noise.  x_init: ``(N, d)`` standard normal, scaled by
+    sigma_1 to start the reverse process (added to the prior ensemble by the ancestral sampler).
+    eps: the reverse steps' draws, or None to draw them step by step: Euler-Maruyama ``(L, N, d)``
+    standard normal, ancestral an :class:`AncestralNoise`.
     """
 
     prop: torch.Tensor
     x_init: torch.Tensor
-    eps: Optional[torch.Tensor]
+    eps: Optional[torch.Tensor | AncestralNoise]
+
+
+def _em_call(step: Callable, sched: Schedule, l: int, x, y, code, guide, eps) -> torch.Tensor:
+    """``step`` at reverse time ``l`` of the Euler-Maruyama schedule."""
+    return step(x, y, code, sched.t_score[l], sched.var[l], sched.g2dt[l], sched.noise_scale[l],
+                sched.noise_on[l], guide, eps)
 
 
 def posterior_sample(step: Callable, sched: Schedule, x_init: torch.Tensor, y: torch.Tensor,
                      code: torch.Tensor, guide: torch.Tensor,
                      eps: Optional[torch.Tensor] = None,
                      generator: Optional[torch.Generator] = None) -> torch.Tensor:
-    """The L reverse steps from ``x_init (N, d)`` (already scaled); returns ``(N, d)``.
+    """Euler-Maruyama: the L reverse steps from ``x_init (N, d)`` (already scaled); returns
+    ``(N, d)``.
 
     eps: ``(L, N, d)`` injected noise, or None to draw it step by step from ``generator``.
     """
     x = x_init
     for l in range(sched.t.shape[0]):
         e = eps[l] if eps is not None else torch.randn(x.shape, generator=generator, dtype=x.dtype)
-        x = step(x, y, code, sched.t_score[l], sched.var[l], sched.g2dt[l], sched.noise_scale[l],
-                 sched.noise_on[l], guide, e)
+        x = _em_call(step, sched, l, x, y, code, guide, e)
+    return x
+
+
+def draw_level(shape: tuple, proposals: int, generator: Optional[torch.Generator] = None,
+               dtype: torch.dtype = DTYPE):
+    """One level's ancestral draws for ``shape = (N, d)``: ``(z_post (K, N, d), gumbel (K, N) or
+    None, z_bridge (N, d))``; Gumbel as ``-log`` of a standard exponential."""
+    z_post = torch.randn((proposals, *shape), generator=generator, dtype=dtype)
+    gumbel = None
+    if proposals > 1:
+        exp = torch.empty((proposals, shape[0]), dtype=dtype).exponential_(generator=generator)
+        gumbel = -torch.log(exp)
+    return z_post, gumbel, torch.randn(shape, generator=generator, dtype=dtype)
+
+
+def _level_noise(noise: AncestralNoise, l: int):
+    """Level ``l`` of injected draws, as :func:`draw_level` returns them."""
+    return noise.post[l], None if noise.gumbel is None else noise.gumbel[l], noise.bridge[l]
+
+
+def _ancestral_call(step: Callable, sched: AncestralSchedule, l: int, x, u, y, code, precision,
+                    guide, level_noise):
+    """``step`` at level ``l`` of the ancestral schedule; returns ``(x, u)``."""
+    return step(x, u, sched.first[l], y, code, precision, sched.t_score[l], sched.sigma[l],
+                sched.rho[l], sched.noise_scale[l], guide, *level_noise)
+
+
+def ancestral_sample(step: Callable, sched: AncestralSchedule, x_init: torch.Tensor,
+                     y: torch.Tensor, code: torch.Tensor, precision: torch.Tensor,
+                     guide: torch.Tensor, noise: Optional[AncestralNoise] = None,
+                     generator: Optional[torch.Generator] = None) -> torch.Tensor:
+    """The ancestral sampler's L levels from ``x_init (N, d)`` (the noised prior ensemble);
+    returns ``(N, d)``. precision: ``(d, d)`` from :func:`gaussian_precision`.
+
+    noise: injected draws, or None to draw them level by level from ``generator``.
+    """
+    x, u = x_init, x_init
+    for l in range(sched.sigma.shape[0]):
+        level = (_level_noise(noise, l) if noise is not None
+                 else draw_level(tuple(x.shape), sched.proposals, generator, x.dtype))
+        x, u = _ancestral_call(step, sched, l, x, u, y, code, precision, guide, level)
     return x
 
 
 @torch.no_grad()
-def filter_step(nets: Networks, problem: TorchProblem, step: Callable, sched: Schedule,
-                ensemble: torch.Tensor, y: torch.Tensor, guide: torch.Tensor,
-                noise: Optional[StepNoise] = None,
+def filter_step(nets: Networks, problem: TorchProblem, step: Callable, sched,
+                ensemble: torch.Tensor,
+                y: torch.Tensor, guide: torch.Tensor, noise: Optional[StepNoise] = None,
                 generator: Optional[torch.Generator] = None) -> torch.Tensor:
-    """One CSF filter step: propagate, encode the prior ensemble, L reverse steps.
+    """One CSF filter step: propagate, encode the prior ensemble, L reverse steps of the sampler
+    that ``sched`` belongs to (:class:`AncestralSchedule` or :class:`Schedule`; ``step`` from
+    :func:`make_reverse_step` with the same config).
 
     ensemble: ``(N, d)`` posterior at the previous time.  y: ``(m,)``.  guide: 0-d, 1.0 to
     assimilate ``y``.  noise: injected draws, or None to draw from ``generator``.
@@ -428,8 +724,29 @@ def filter_step(nets: Networks, problem: TorchProblem, step: Callable, sched: Sc
         noise = StepNoise(draw(), draw(), None)
     prior_ens = problem.drift(ensemble) + problem.process_std * noise.prop
     code = nets.encoder(prior_ens)
+    if isinstance(sched, AncestralSchedule):
+        x_init = prior_ens + sched.sigma_start * noise.x_init
+        precision = gaussian_precision(prior_ens, sched.inflation)
+        return ancestral_sample(step, sched, x_init, y, code, precision, guide, noise.eps,
+                                generator)
     x_init = torch.sqrt(sched.var[0]) * noise.x_init  # sigma_1: the grid starts at t = 1
     return posterior_sample(step, sched, x_init, y, code, guide, noise.eps, generator)
+
+
+@torch.no_grad()
+def first_reverse_step(nets: Networks, step: Callable, sched, ensemble: torch.Tensor,
+                       y: torch.Tensor) -> torch.Tensor:
+    """One call of ``step`` at the first level (time) of ``sched``, from ``ensemble (N, d)`` as the
+    prior ensemble and the current state, with noise from torch's global generator: what
+    ``torch.compile`` compiles on (e.g. to time the compilation). Returns the new state ``(N, d)``.
+    """
+    code, guide = nets.encoder(ensemble), torch.tensor(1.0, dtype=ensemble.dtype)
+    if isinstance(sched, AncestralSchedule):
+        precision = gaussian_precision(ensemble, sched.inflation)
+        level = draw_level(tuple(ensemble.shape), sched.proposals, dtype=ensemble.dtype)
+        return _ancestral_call(step, sched, 0, ensemble, ensemble, y, code, precision, guide,
+                               level)[0]
+    return _em_call(step, sched, 0, ensemble, y, code, guide, torch.randn_like(ensemble))
 
 
 @torch.no_grad()
@@ -438,15 +755,17 @@ def csf_filter(nets: Networks, problem: TorchProblem, obs: torch.Tensor, ensembl
                step: Optional[Callable] = None):
     """``K`` filter steps; returns ``(mean (K, d), std (K, d), last posterior ensemble (N, d))``.
 
-    obs: ``(K, m)``.  ensemble: ``(N, d)`` initial ensemble.  step: a :func:`make_reverse_step`
-    result to reuse (e.g. an already compiled one); built from ``compile`` when None.
+    obs: ``(K, m)``.  ensemble: ``(N, d)`` initial ensemble.  config: the sampler (and its
+    settings) as in csf_jax.  step: a :func:`make_reverse_step` result for the same config to
+    reuse (e.g. an already compiled one); built from ``compile`` when None.
     """
     step = make_reverse_step(nets, problem, config, compile) if step is None else step
-    sched = schedule(config)
+    sched = schedule(config, ensemble.dtype)
     gen = torch.Generator().manual_seed(seed)
     means, stds = [], []
     for k in range(obs.shape[0]):
-        guide = torch.tensor(1.0 if (k > 0 or config.assimilate_first) else 0.0, dtype=DTYPE)
+        guide = torch.tensor(1.0 if (k > 0 or config.assimilate_first) else 0.0,
+                             dtype=ensemble.dtype)
         ensemble = filter_step(nets, problem, step, sched, ensemble, obs[k], guide, generator=gen)
         means.append(ensemble.mean(0))
         stds.append(ensemble.std(0, correction=0))

@@ -1,16 +1,27 @@
-"""Shared fixtures: float64 mode and a linear-Gaussian problem with its exact Kalman solution."""
+"""Shared fixtures: float64 mode and a linear-Gaussian problem with its exact Kalman solution.
 
-from typing import NamedTuple
+The suite is dominated by XLA compilations, not by running the compiled code, so it compiles with
+LLVM's optimisations off (``--xla_backend_optimization_level=0``, inherited by the CLI
+subprocesses): half the wall time. It changes code generation only; the results checked here are
+the same (benchmarks and ``experiments`` never set it).
+"""
 
-import jax
-import jax.numpy as jnp
-import numpy as np
-import pytest
+import os
 
-from csf_jax.filters.kalman import kalman_filter
-from csf_jax.filters.result import FilterResult
-from csf_jax.problems.linear import LinearGaussian, linear_gaussian, to_model
-from csf_jax.ssm import StateSpaceModel, propagate
+os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
+                           + " --xla_backend_optimization_level=0").strip()
+
+from typing import NamedTuple  # noqa: E402
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from csf_jax.filters.kalman import kalman_filter  # noqa: E402
+from csf_jax.filters.result import FilterResult  # noqa: E402
+from csf_jax.problems.linear import LinearGaussian, linear_gaussian, to_model  # noqa: E402
+from csf_jax.ssm import StateSpaceModel, propagate  # noqa: E402
 
 
 def simulate_linear(lg: LinearGaussian, seed: int) -> np.ndarray:

@@ -15,12 +15,20 @@ from csf_jax import CSFConfig, problems
 from csf_jax.pretrained import MODEL_FOR
 from experiments import run
 
+# The cubic problems take 13-53 s each here (mostly compiling the d x d linear algebra of the
+# sampler); the default run keeps the 1-D and 5-D problems, ``-m slow`` runs the cubic ones. The
+# quick main job (CSF, SF, EnKF, PF and figures: 16-26 s a problem) runs on the double well only.
+FAST = ("double_well", "triple_well", "cauchy")
+EVERY_PROBLEM = [n if n in FAST else pytest.param(n, marks=pytest.mark.slow) for n in problems.NAMES]
+MAIN_JOB = [n if n == "double_well" else pytest.param(n, marks=pytest.mark.slow)
+            for n in problems.NAMES]
+
 RESULT_KEYS = {"problem", "config", "rmse", "rmse_per_dim", "seconds_per_step", "compile_seconds",
                "machine", "versions", "rmse_per_run", "rmse_over_time", "rmse_before_shock",
                "rmse_after_shock", "runs_used", "shock_steps"}
 
 
-@pytest.mark.parametrize("name", problems.NAMES)
+@pytest.mark.parametrize("name", MAIN_JOB)
 def test_quick_main_job(name, tmp_path, capsys):
     pytest.importorskip("matplotlib")
     run.main([name, "--quick", "--out", str(tmp_path), "--no-progress"])
@@ -41,7 +49,7 @@ def test_quick_main_job(name, tmp_path, capsys):
     assert "| CSF |" in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("name", problems.NAMES)
+@pytest.mark.parametrize("name", EVERY_PROBLEM)
 def test_exact_prior_csf_runs(name):
     """CSF with the exact mixture prior (no network) on every problem (random-init networks are
     tested in test_csf.py)."""
@@ -87,6 +95,7 @@ json.dump({"spread": spread["rmse_per_run"], "alone": alone["rmse_per_run"],
 """
 
 
+@pytest.mark.slow  # a fresh process and its compilations: run with -m slow
 def test_runs_spread_over_host_devices_change_nothing_but_time(tmp_path):
     """The main job spreads a batch of CSF/SF runs over one XLA host device per core; every run's
     numbers equal those of the same run alone up to float rounding (runs are independent; only the
@@ -113,6 +122,7 @@ def test_runs_spread_over_host_devices_change_nothing_but_time(tmp_path):
     assert {f: os.stat(tmp_path / "a" / "cache" / f).st_mtime_ns for f in files} == stamps
 
 
+@pytest.mark.slow  # a fresh process and its compilations: run with -m slow
 def test_cli_runs_sf_on_fewer_runs_on_cpu_and_says_so(capsys):
     """On a CPU the CLI's default SF runs are the first CPU_SF_RUNS runs (its online training is
     the slow column); the table marks the row and stderr says how to get all."""

@@ -259,6 +259,7 @@ def _cli_error(main, argv, capsys) -> str:
     (["--seed", "-1"], "--seed"), (["--sf-runs", "0"], "--sf-runs"), (["--runs", "x"], "--runs"),
     (["--methods", "csf,kalman"], "--methods"), (["--methods", ","], "--methods"),
     (["--runs", "2", "--sf-runs", "3"], "--sf-runs"), (["--out", "README.md"], "--out"),
+    (["--guidance", "fast"], "--guidance"),
 ])
 def test_run_cli_refuses_bad_values(argv, flag, capsys):
     from experiments import run
@@ -275,6 +276,11 @@ def test_run_cli_refuses_bad_values(argv, flag, capsys):
     ("table", ["--problems", "double_well,nowhere"], "--problems"),
     ("prior_quality", ["cauchy", "--ensembles", "0"], "--ensembles"),
     ("guidance_study", ["--particles", "1"], "--particles"),
+    ("table", ["--guidance", "fast"], "--guidance"),
+    ("posterior_quality", ["--trials", "0"], "--trials"),
+    ("posterior_quality", ["--samplers", "kalman:1"], "--samplers"),
+    ("posterior_quality", ["--samplers", "euler:50"], "--samplers"),
+    ("posterior_quality", ["--cases", "linear d10 narrow,nowhere"], "--cases"),
 ])
 def test_other_clis_refuse_bad_values(module, argv, flag, capsys):
     import importlib

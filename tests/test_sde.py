@@ -93,3 +93,21 @@ def test_inflated_time_adds_variance(x64, tau):
     got = sde.marginal_std(sde.inflated_time(t, tau, 25.0), 25.0)
     np.testing.assert_allclose(got, np.sqrt(np.asarray(sde.marginal_std(t, 25.0)) ** 2 + tau ** 2),
                                rtol=1e-12)
+
+
+def test_noise_levels_are_geometric_and_end_at_zero():
+    levels = sde.noise_levels(5, 8.0, 0.5)
+    assert levels.shape == (6,) and levels[-1] == 0.0
+    np.testing.assert_allclose(levels[:-1], [8.0, 4.0, 2.0, 1.0, 0.5])
+    with pytest.raises(ValueError, match="sigma_start >= sigma_end > 0"):
+        sde.noise_levels(5, 0.1, 0.5)
+
+
+def test_bridge_keeps_the_ve_marginal(x64):
+    """x_sigma = x0 + sigma z, then one bridge step with the true x0: x_sigma' ~ N(x0, sigma'^2),
+    for any step size (rho^2 sigma^2 + v = sigma'^2)."""
+    for sigma, nxt in [(9.8, 0.03), (2.0, 1.5), (1.0, 0.0)]:
+        rho, v = sde.bridge(jnp.float64(sigma), jnp.float64(nxt))
+        assert float(rho ** 2 * sigma ** 2 + v) == pytest.approx(nxt ** 2, abs=1e-12)
+    rho, v = sde.bridge(jnp.float64(2.0), jnp.float64(0.0))
+    assert float(rho) == 0.0 and float(v) == 0.0

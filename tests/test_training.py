@@ -123,6 +123,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ENV = {**os.environ, "JAX_PLATFORMS": "cpu"}
 
 
+@pytest.mark.slow  # a fresh process and its compilations: run with -m slow
 def test_kill_dash_nine_then_resume(tmp_path):
     """SIGKILL mid-training, then the same command again: it resumes from the last complete
     checkpoint (not from scratch), finishes, and the checkpoint it restores is intact."""

@@ -20,10 +20,9 @@ import jax.numpy as jnp
 import optax
 
 from csf_jax import _checks, networks
-from csf_jax.filters.csf import CSFConfig, particle_sampler
+from csf_jax.filters.csf import CSFConfig, particle_sampler, sampler_start
 from csf_jax.filters.result import FilterResult, mark_nonfinite
 from csf_jax.prior import unconditional_prior
-from csf_jax.sde import marginal_std
 from csf_jax.ssm import StateSpaceModel
 from csf_jax.training.single import dsm_fit
 
@@ -66,7 +65,6 @@ def _sf_scan(obs, ensemble, key, *, model: StateSpaceModel, config: SFConfig, sa
     sample = particle_sampler(model, prior, sampler)
     optimizer = optax.adam(config.lr)
     K = obs.shape[0]
-    sigma_1 = marginal_std(1.0, sampler.sigma_max)
     k_init, k_warm, k_scan = jax.random.split(key, 3)
     params = networks.init_params(k_init, net, model.dim)
     score_vars = jax.tree_util.tree_map(lambda a: a.astype(ensemble.dtype), params["score"])
@@ -88,9 +86,9 @@ def _sf_scan(obs, ensemble, key, *, model: StateSpaceModel, config: SFConfig, sa
                                 steps=config.train_steps, batch=config.batch, t_min=sampler.t_min)
         full = {"encoder": None, "score": sv}
         context = prior.condition(full, centers, prior_ens, model.process_std)
-        x_init = sigma_1 * jax.random.normal(k_x, ens.shape, ens.dtype)
         guide = jnp.where((k > 0) | sampler.assimilate_first, 1.0, 0.0).astype(ens.dtype)
-        post = sample(full, context, y, x_init, k_rev, guide)
+        x_init, precision = sampler_start(sampler, prior_ens, k_x)
+        post = sample(full, context, y, x_init, precision, k_rev, guide)
         out = (post.mean(0), post.std(0), post if return_ensembles else None, losses[-1])
         return (post, sv, o), out
 
