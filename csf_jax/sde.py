@@ -33,13 +33,13 @@ def time_of_std(sigma, sigma_max: float = SIGMA_MAX):
     return jnp.log1p(2.0 * log_s * jnp.square(sigma)) / (2.0 * log_s)
 
 
-def inflated_time(t, inflation: float, sigma_max: float = SIGMA_MAX):
+def inflated_time(t, inflation, sigma_max: float = SIGMA_MAX):
     """The time whose marginal std is ``sqrt(sigma_t^2 + inflation^2)``.
 
     The score of the VE-diffused prior at that time is the score at time t of the prior convolved
     with ``N(0, inflation^2 I)``: evaluating a prior score there inflates the prior.
     """
-    if inflation == 0.0:
+    if isinstance(inflation, (int, float)) and inflation == 0.0:
         return t
     return time_of_std(jnp.sqrt(jnp.square(marginal_std(t, sigma_max)) + inflation ** 2), sigma_max)
 

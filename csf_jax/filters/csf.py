@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Callable, Optional
+from typing import Callable, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -33,6 +33,7 @@ import numpy as np
 
 from csf_jax import _checks, networks, trained
 from csf_jax.filters.result import FilterResult, mark_nonfinite
+from csf_jax.inflation import adaptive_inflation
 from csf_jax.guidance import (GuidanceConfig, dps_gradient, guidance_displacement, kalman_tweedie,
                               resample_posterior)
 from csf_jax.networks import NetworkConfig
@@ -63,6 +64,15 @@ class CSFConfig:
       form of the ensemble filters' covariance inflation). 0 is the paper's sampler. A broader prior
       lets the likelihood pull the ensemble to a state the model deems (nearly) impossible, such
       as the mirror well after an unmodelled shock. Default 0.5 (README: measured against 0).
+    adaptive_inflation: choose the inflation per filter step from the innovation
+      (``csf_jax.inflation.adaptive_inflation``): ``tau^2 = prior_inflation^2 + s``, with ``s > 0`` only
+      when the observation is improbable under the prior ensemble (a shock), 0 otherwise.
+    inflation_threshold: the adaptive inflation's trigger, in standard deviations of the chi-square
+      innovation statistic above its mean m.
+    inflation_max: cap on the adaptive part of tau.
+    encode_particles: how many particles of the prior ensemble the set encoder sees (the first n;
+      particles are exchangeable). None: all N. The encoder's self-attention costs O(n^2), and the
+      priors were trained on sets of 32-128 particles.
     """
 
     reverse_steps: int = 50
@@ -72,6 +82,10 @@ class CSFConfig:
     assimilate_first: bool = True
     denoise_last: bool = True
     prior_inflation: float = 0.5
+    adaptive_inflation: bool = False
+    inflation_threshold: float = 2.0
+    inflation_max: float = 10.0
+    encode_particles: Optional[int] = None
 
     def __post_init__(self):
         if self.reverse_steps < 2:
@@ -82,6 +96,12 @@ class CSFConfig:
             raise ValueError(f"CSFConfig.sigma_max must be > 1, got {self.sigma_max}")
         if not self.prior_inflation >= 0.0:
             raise ValueError(f"CSFConfig.prior_inflation must be >= 0, got {self.prior_inflation}")
+        if not self.inflation_max > 0.0 or not np.isfinite(self.inflation_threshold):
+            raise ValueError(f"CSFConfig needs inflation_max > 0 and a finite inflation_threshold, "
+                             f"got {self.inflation_max}, {self.inflation_threshold}")
+        n = self.encode_particles
+        if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 2):
+            raise ValueError(f"CSFConfig.encode_particles must be None or an int >= 2, got {n!r}")
 
 
 def uses_kalman(config: CSFConfig) -> bool:
@@ -89,26 +109,57 @@ def uses_kalman(config: CSFConfig) -> bool:
     return config.guidance.mode == "kalman"
 
 
-def sampler_start(config: CSFConfig, prior_ens, key):
-    """The reverse process's first state ``(N, d)`` and the ensemble's Gaussian precision.
+class SamplerStart(NamedTuple):
+    """What one filter step's reverse sampler starts from, besides ``x_init``.
+
+    precision: (d, d) the ensemble Gaussian's ``(C + tau^2 I)^{-1}`` (ancestral sampler), or None
+      (Euler-Maruyama).
+    tau: scalar prior inflation of this filter step (``CSFConfig.prior_inflation``, or the adaptive
+      one of ``csf_jax.inflation``).
+    """
+
+    precision: Optional[jax.Array]
+    tau: jax.Array
+
+
+def step_inflation(config: CSFConfig, prior_ens, y=None, model: Optional[StateSpaceModel] = None,
+                   guide=1.0):
+    """This filter step's prior inflation ``tau`` (scalar): fixed, or adaptive from the innovation
+    of ``y (m,)`` under ``prior_ens (N, d)`` when ``config.adaptive_inflation`` (and y is assimilated:
+    ``guide`` 1)."""
+    tau = jnp.asarray(config.prior_inflation, prior_ens.dtype)
+    if not config.adaptive_inflation or y is None:
+        return tau
+    adaptive = adaptive_inflation(prior_ens, y, model, config.prior_inflation,
+                                  config.inflation_threshold, config.inflation_max)
+    return jnp.where(guide > 0, adaptive, tau).astype(prior_ens.dtype)
+
+
+def sampler_start(config: CSFConfig, prior_ens, key, y=None, model: Optional[StateSpaceModel] = None,
+                  guide=1.0):
+    """The reverse process's first state ``(N, d)`` and its ``SamplerStart``.
 
     Ancestral: the prior ensemble noised to ``sigma_start`` (an exact draw of the diffused prior) and
-    ``(C + tau^2 I)^{-1}``. Euler-Maruyama: ``N(0, sigma_1^2 I)`` (Alg. 2) and None.
+    ``(C + tau^2 I)^{-1}``. Euler-Maruyama: ``N(0, sigma_1^2 I)`` (Alg. 2) and no precision.
+    ``y``/``model``/``guide``: for the adaptive inflation (``step_inflation``).
     """
     sigma_1 = marginal_std(1.0, config.sigma_max)
     noise = jax.random.normal(key, prior_ens.shape, prior_ens.dtype)
+    tau = step_inflation(config, prior_ens, y, model, guide)
     if not uses_kalman(config):
-        return sigma_1 * noise, None
-    return prior_ens + sigma_1 * noise, gaussian_precision(prior_ens, config.prior_inflation)
+        return sigma_1 * noise, SamplerStart(None, tau)
+    return prior_ens + sigma_1 * noise, SamplerStart(gaussian_precision(prior_ens, tau), tau)
 
 
 def ancestral_sample(params, prior: PriorScore, context, model: StateSpaceModel, y, x_init,
-                     precision, key, config: CSFConfig, guide):
+                     start: SamplerStart, key, config: CSFConfig, guide):
     """The ancestral sampler with Kalman guidance: L steps from ``x_init (N, d)`` to ``(N, d)``.
 
-    precision: (d, d) the ensemble Gaussian's ``(C + tau^2 I)^{-1}``; at level sigma the covariance
-    of ``x_0 | x_t`` is ``P = (precision + I / sigma^2)^{-1}`` (exact for a Gaussian prior).
+    start.precision: (d, d) the ensemble Gaussian's ``(C + tau^2 I)^{-1}``; at level sigma the
+    covariance of ``x_0 | x_t`` is ``P = (precision + I / sigma^2)^{-1}`` (exact for a Gaussian prior).
+    start.tau: the prior inflation.
     """
+    precision = start.precision
     sigma_max = config.sigma_max
     levels = jnp.asarray(noise_levels(config.reverse_steps, marginal_std_host(1.0, sigma_max),
                                       marginal_std_host(config.t_min, sigma_max)), x_init.dtype)
@@ -121,7 +172,7 @@ def ancestral_sample(params, prior: PriorScore, context, model: StateSpaceModel,
     def step(carry, inputs):
         x, u = carry
         sigma, sigma_next, l_idx = inputs
-        t = inflated_time(time_of_std(sigma, sigma_max), config.prior_inflation, sigma_max)
+        t = inflated_time(time_of_std(sigma, sigma_max), start.tau, sigma_max)
         x0_hat = x + sigma ** 2 * prior.score(params, context, x, t)
         u = jnp.where(l_idx == 0, x0_hat, u)
         prior_precision = precision + eye / sigma ** 2
@@ -140,12 +191,14 @@ def ancestral_sample(params, prior: PriorScore, context, model: StateSpaceModel,
 
 
 def posterior_sample(params, prior: PriorScore, context, loglik_fn, x_init, key, config: CSFConfig,
-                     guide):
+                     guide, tau=None):
     """Euler-Maruyama with DPS guidance: the L reverse steps from ``x_init (N, d)``; returns the
     posterior ensemble ``(N, d)``.
 
     loglik_fn: ``x0 (d,) -> scalar``.  guide: scalar, 1.0 to assimilate, 0.0 to sample the prior.
+    tau: the prior inflation (default ``config.prior_inflation``).
     """
+    tau = config.prior_inflation if tau is None else tau
     grid = reverse_grid(config.reverse_steps, 1.0, config.t_min)
     n_steps = config.reverse_steps
     is_last = jnp.arange(n_steps) == n_steps - 1
@@ -156,7 +209,7 @@ def posterior_sample(params, prior: PriorScore, context, loglik_fn, x_init, key,
         var = marginal_std(t, config.sigma_max) ** 2
         score_fn = functools.partial(
             prior.score, params, context,
-            t=inflated_time(t, config.prior_inflation, config.sigma_max))
+            t=inflated_time(t, tau, config.sigma_max))
         if config.guidance.mode == "none":
             s, disp = score_fn(x), 0.0
         else:
@@ -175,9 +228,9 @@ def posterior_sample(params, prior: PriorScore, context, loglik_fn, x_init, key,
 
 def particle_sampler(model: StateSpaceModel, prior: PriorScore, config: CSFConfig,
                      shards: int = 1):
-    """``(params, context, y (m,), x_init (N, d), precision, key, guide) -> (N, d)``: the L reverse
-    steps of one filter step, with the observation ``y`` assimilated. ``x_init`` and ``precision``
-    come from ``sampler_start`` (precision is None for Euler-Maruyama).
+    """``(params, context, y (m,), x_init (N, d), start, key, guide) -> (N, d)``: the L reverse
+    steps of one filter step, with the observation ``y`` assimilated. ``x_init`` and ``start``
+    (a ``SamplerStart``) come from ``sampler_start``.
 
     shards > 1 splits the particle axis over the first ``shards`` local devices with
     ``jax.shard_map`` (the reverse steps are independent per particle given the prior's context,
@@ -187,14 +240,14 @@ def particle_sampler(model: StateSpaceModel, prior: PriorScore, config: CSFConfi
     cores. Each shard draws its noise from ``fold_in(key, shard)``: results depend on ``shards``.
     """
 
-    def sample(params, context, y, x_init, precision, key, guide):
+    def sample(params, context, y, x_init, start, key, guide):
         if shards > 1:
             key = jax.random.fold_in(key, jax.lax.axis_index("particles"))
         if uses_kalman(config):
-            return ancestral_sample(params, prior, context, model, y, x_init, precision, key,
+            return ancestral_sample(params, prior, context, model, y, x_init, start, key,
                                     config, guide)
         return posterior_sample(params, prior, context, lambda x0: log_likelihood(model, y, x0),
-                                x_init, key, config, guide)
+                                x_init, key, config, guide, start.tau)
 
     if shards == 1:
         return sample
@@ -233,10 +286,11 @@ def _csf_scan(params, obs, ensemble, key, *, model: StateSpaceModel, prior: Prio
         k_prop, k_init, k_rev = jax.random.split(key_k, 3)
         centers = jax.vmap(model.drift)(ens)
         prior_ens = centers + model.process_std * jax.random.normal(k_prop, ens.shape, ens.dtype)
-        context = prior.condition(params, centers, prior_ens, model.process_std)
-        x_init, precision = sampler_start(config, prior_ens, k_init)
+        context = prior.condition(params, centers, prior_ens[:config.encode_particles],
+                                  model.process_std)
         guide = jnp.where((k > 0) | config.assimilate_first, 1.0, 0.0).astype(ens.dtype)
-        post = sample(params, context, y, x_init, precision, k_rev, guide)
+        x_init, start = sampler_start(config, prior_ens, k_init, y, model, guide)
+        post = sample(params, context, y, x_init, start, k_rev, guide)
         out = (post.mean(0), post.std(0), post if return_ensembles else None)
         return post, out
 

@@ -87,8 +87,8 @@ def _sf_scan(obs, ensemble, key, *, model: StateSpaceModel, config: SFConfig, sa
         full = {"encoder": None, "score": sv}
         context = prior.condition(full, centers, prior_ens, model.process_std)
         guide = jnp.where((k > 0) | sampler.assimilate_first, 1.0, 0.0).astype(ens.dtype)
-        x_init, precision = sampler_start(sampler, prior_ens, k_x)
-        post = sample(full, context, y, x_init, precision, k_rev, guide)
+        x_init, start = sampler_start(sampler, prior_ens, k_x, y, model, guide)
+        post = sample(full, context, y, x_init, start, k_rev, guide)
         out = (post.mean(0), post.std(0), post if return_ensembles else None, losses[-1])
         return (post, sv, o), out
 

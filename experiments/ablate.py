@@ -1,0 +1,122 @@
+"""CSF ablations on a few runs of the table: one setting changed at a time, same data, same keys.
+
+    python -m experiments.ablate cubic10_indep --runs 2 \
+        --setting reverse_steps=20 --setting reverse_steps=20,prior_inflation=0.2 \
+        [--out docs/ablation/cubic10_indep.json]
+
+Each ``--setting`` is a comma-separated list of ``CSFConfig`` fields (``field=value``, values read as
+Python literals); the pretrained prior of the problem, N = 1000 and the runs of
+``experiments.run`` (seed 0: run i is the table's run i) are shared. EnKF on the same runs is the
+first row. Prints a markdown table (RMSE over the runs, per run, seconds per filter step, measured
+one run at a time after compilation) and appends the rows to ``--out`` (JSON, one object per row),
+so that a page quoting them names this command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import dataclasses
+import json
+import os
+import sys
+import time
+
+import jax
+import numpy as np
+
+import csf_jax
+from csf_jax import CSFConfig, problems
+from csf_jax.pretrained import load_pretrained
+from experiments._cli import positive_int
+from experiments.run import _errors, machine, simulate_runs
+
+
+def parse_setting(text: str) -> dict:
+    """``"a=1,b=0.2"`` -> ``{"a": 1, "b": 0.2}``, checked against ``CSFConfig``'s fields."""
+    fields = {f.name for f in dataclasses.fields(CSFConfig)}
+    out = {}
+    for part in filter(None, text.split(",")):
+        name, sep, value = part.partition("=")
+        if not sep or name.strip() not in fields:
+            raise argparse.ArgumentTypeError(f"{part!r}: expected field=value with a CSFConfig "
+                                             f"field ({', '.join(sorted(fields))})")
+        try:
+            out[name.strip()] = ast.literal_eval(value.strip())
+        except (ValueError, SyntaxError):
+            raise argparse.ArgumentTypeError(f"{part!r}: the value is not a Python literal")
+    try:
+        CSFConfig(**out)
+    except (ValueError, TypeError) as e:
+        raise argparse.ArgumentTypeError(str(e))
+    return out
+
+
+def ablate(name: str, runs: int, settings, particles: int = 1000, seed: int = 0):
+    """Rows ``{"setting", "rmse", "rmse_per_run", "seconds_per_step"}``: EnKF first, then CSF per
+    setting."""
+    model = problems.get(name)
+    trained = load_pretrained(name)
+    truth, obs, _, ens, keys = simulate_runs(model, runs, particles, seed)
+    truth = np.asarray(truth)
+    K = obs.shape[1]
+
+    def row(label, means, seconds):
+        err = _errors(np.stack(means), truth)
+        return {"problem": name, "setting": label, "runs": runs, "particles": particles,
+                "rmse": float(np.sqrt(err.mean())),
+                "rmse_per_run": np.sqrt(err.mean(axis=1)).round(4).tolist(),
+                "seconds_per_step": seconds / (runs * K)}
+
+    enkf = jax.jit(jax.vmap(lambda o, e, k: csf_jax.ensemble_kalman_filter(o, e, problem=model,
+                                                                            key=k)))
+    compiled = enkf.lower(obs, ens, keys).compile()
+    t0 = time.perf_counter()
+    rows = [row("EnKF", list(np.asarray(compiled(obs, ens, keys).mean)), time.perf_counter() - t0)]
+    print(table(rows[-1:], header=True), flush=True)
+    for setting in settings:
+        cfg = CSFConfig(**setting)
+        fn = jax.jit(lambda o, e, k: csf_jax.filter(trained, o, e, problem=model, key=k, config=cfg,
+                                                    check_finite=False).mean)
+        compiled = fn.lower(obs[0], ens[0], keys[0]).compile()
+        t0 = time.perf_counter()
+        means = [np.asarray(compiled(obs[i], ens[i], keys[i])) for i in range(runs)]
+        rows.append(row("CSF " + (", ".join(f"{k}={v}" for k, v in setting.items()) or "default"),
+                        means, time.perf_counter() - t0))
+        print(table(rows[-1:]), flush=True)
+    return rows
+
+
+def table(rows, header: bool = False) -> str:
+    lines = ["| problem | setting | runs | RMSE | per run | s / filter step |",
+             "|---|---|---|---|---|---|"] if header else []
+    for r in rows:
+        lines.append(f"| {r['problem']} | {r['setting']} | {r['runs']} | {r['rmse']:.4f} | "
+                     f"{', '.join(f'{v:.3f}' for v in r['rmse_per_run'])} | "
+                     f"{r['seconds_per_step']:.4f} |")
+    return "\n".join(lines)
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(prog="python -m experiments.ablate", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("problem", choices=problems.NAMES)
+    p.add_argument("--runs", type=positive_int, default=2)
+    p.add_argument("--setting", type=parse_setting, action="append", default=None,
+                   help="CSFConfig fields, e.g. reverse_steps=20,prior_inflation=0.2 (repeatable; "
+                        "none: the default config)")
+    p.add_argument("--out", default=None, help="JSON file the rows are appended to")
+    args = p.parse_args(argv)
+    rows = ablate(args.problem, args.runs, args.setting or [{}])
+    if args.out:
+        os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
+        old = json.load(open(args.out)) if os.path.exists(args.out) else {"rows": []}
+        old["rows"].extend(rows)
+        old["machine"] = machine()
+        with open(args.out, "w") as f:
+            json.dump(old, f, indent=1)
+        print(f"appended {len(rows)} rows to {args.out}", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()
