@@ -9,7 +9,8 @@ Python literals); the pretrained prior of the problem, N = 1000 and the runs of
 ``experiments.run`` (seed 0: run i is the table's run i) are shared. EnKF on the same runs is the
 first row. Prints a markdown table (RMSE over the runs, per run, seconds per filter step, measured
 one run at a time after compilation) and appends the rows to ``--out`` (JSON, one object per row),
-so that a page quoting them names this command.
+so that a page quoting them names this command. ``--render JSON`` prints the table of such a file
+(each problem's EnKF row once, problems in order of first appearance): docs/ablation.md is made so.
 """
 
 from __future__ import annotations
@@ -97,16 +98,37 @@ def table(rows, header: bool = False) -> str:
     return "\n".join(lines)
 
 
+def render(path: str) -> str:
+    """The markdown table of the rows in ``path`` (a ``--out`` file); repeated rows kept once."""
+    with open(path) as f:
+        rows = json.load(f)["rows"]
+    seen, problems_seen, kept = set(), [], []
+    for r in rows:
+        if (r["problem"], r["setting"]) in seen:
+            continue
+        seen.add((r["problem"], r["setting"]))
+        problems_seen += [r["problem"]] if r["problem"] not in problems_seen else []
+        kept.append(r)
+    kept.sort(key=lambda r: problems_seen.index(r["problem"]))
+    return table(kept, header=True)
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(prog="python -m experiments.ablate", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("problem", choices=problems.NAMES)
+    p.add_argument("problem", nargs="?", choices=problems.NAMES)
     p.add_argument("--runs", type=positive_int, default=2)
     p.add_argument("--setting", type=parse_setting, action="append", default=None,
                    help="CSFConfig fields, e.g. reverse_steps=20,prior_inflation=0.2 (repeatable; "
                         "none: the default config)")
     p.add_argument("--out", default=None, help="JSON file the rows are appended to")
+    p.add_argument("--render", default=None, help="print the table of this JSON file and stop")
     args = p.parse_args(argv)
+    if args.render:
+        print(render(args.render))
+        return
+    if args.problem is None:
+        p.error("the problem is required (or --render JSON)")
     rows = ablate(args.problem, args.runs, args.setting or [{}])
     if args.out:
         os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)

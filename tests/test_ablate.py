@@ -16,7 +16,7 @@ def test_parse_setting():
             ablate.parse_setting(bad)
 
 
-def test_tiny_ablation_rows():
+def test_tiny_ablation_rows(tmp_path):
     rows = ablate.ablate("double_well", 1, [{"reverse_steps": 3},
                                             {"reverse_steps": 3, "adaptive_inflation": True}],
                          particles=64)
@@ -24,3 +24,8 @@ def test_tiny_ablation_rows():
         "EnKF", "CSF reverse_steps=3", "CSF reverse_steps=3, adaptive_inflation=True"]
     assert all(0.0 < r["rmse"] < 5.0 for r in rows)
     assert "| double_well | EnKF |" in ablate.table(rows, header=True)
+    path = tmp_path / "rows.json"
+    path.write_text(__import__("json").dumps({"rows": rows + rows[:1]}))
+    assert ablate.render(str(path)).count("| double_well | EnKF |") == 1
+    with pytest.raises(SystemExit):
+        ablate.main([])

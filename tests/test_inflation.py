@@ -69,5 +69,32 @@ def test_filter_with_adaptive_inflation_is_deterministic_and_jittable():
 def test_config_checks():
     with pytest.raises(ValueError, match="inflation_max"):
         CSFConfig(inflation_max=0.0)
+    with pytest.raises(ValueError, match="inflation_statistic"):
+        CSFConfig(inflation_statistic="mean")
     with pytest.raises(ValueError, match="encode_particles"):
         CSFConfig(encode_particles=1)
+
+
+def test_median_statistic_ignores_one_outlying_coordinate():
+    """One coordinate 6 stds off (a Cauchy-like outlier): the chi-square sum inflates, the median
+    form does not; every coordinate off (a shock): both inflate, the median form by the closed
+    form ``s = e^2 - v``."""
+    ens = _ensemble(jax.random.key(4), n=20000)
+    outlier = ens.mean(0).at[0].add(6.0 * np.sqrt(1.25))
+    assert float(adaptive_inflation(ens, outlier, MODEL)) > 0.5
+    assert float(adaptive_inflation(ens, outlier, MODEL, statistic="median")) == 0.0
+    shock = ens.mean(0) + 4.0
+    _, v, _ = innovation_statistic(ens, shock, MODEL)
+    tau = adaptive_inflation(ens, shock, MODEL, statistic="median")
+    assert float(tau) ** 2 == pytest.approx(float(np.median(16.0 - np.asarray(v))), rel=1e-4)
+    with pytest.raises(ValueError, match="statistic"):
+        adaptive_inflation(ens, shock, MODEL, statistic="mean")
+
+
+def test_statistics_agree_for_one_observed_coordinate():
+    model = to_model(linear_gaussian(1, q_std=0.3, r_std=0.5))
+    ens = jax.random.normal(jax.random.key(5), (5000, 1))
+    for y in (0.5, 3.0, -5.0):
+        a = adaptive_inflation(ens, jnp.array([y]), model, base=0.1)
+        b = adaptive_inflation(ens, jnp.array([y]), model, base=0.1, statistic="median")
+        assert float(a) == pytest.approx(float(b), rel=1e-3)

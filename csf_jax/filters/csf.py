@@ -70,6 +70,8 @@ class CSFConfig:
     inflation_threshold: the adaptive inflation's trigger, in standard deviations of the chi-square
       innovation statistic above its mean m.
     inflation_max: cap on the adaptive part of tau.
+    inflation_statistic: "chi2" (the innovation's chi-square sum) or "median" (a majority of
+      coordinates must be surprised: robust to heavy-tailed noise such as Cauchy).
     encode_particles: how many particles of the prior ensemble the set encoder sees (the first n;
       particles are exchangeable). None: all N. The encoder's self-attention costs O(n^2), and the
       priors were trained on sets of 32-128 particles.
@@ -85,6 +87,7 @@ class CSFConfig:
     adaptive_inflation: bool = False
     inflation_threshold: float = 2.0
     inflation_max: float = 10.0
+    inflation_statistic: str = "chi2"
     encode_particles: Optional[int] = None
 
     def __post_init__(self):
@@ -99,6 +102,9 @@ class CSFConfig:
         if not self.inflation_max > 0.0 or not np.isfinite(self.inflation_threshold):
             raise ValueError(f"CSFConfig needs inflation_max > 0 and a finite inflation_threshold, "
                              f"got {self.inflation_max}, {self.inflation_threshold}")
+        if self.inflation_statistic not in ("chi2", "median"):
+            raise ValueError(f"CSFConfig.inflation_statistic must be 'chi2' or 'median', got "
+                             f"{self.inflation_statistic!r}")
         n = self.encode_particles
         if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 2):
             raise ValueError(f"CSFConfig.encode_particles must be None or an int >= 2, got {n!r}")
@@ -131,7 +137,8 @@ def step_inflation(config: CSFConfig, prior_ens, y=None, model: Optional[StateSp
     if not config.adaptive_inflation or y is None:
         return tau
     adaptive = adaptive_inflation(prior_ens, y, model, config.prior_inflation,
-                                  config.inflation_threshold, config.inflation_max)
+                                  config.inflation_threshold, config.inflation_max,
+                                  statistic=config.inflation_statistic)
     return jnp.where(guide > 0, adaptive, tau).astype(prior_ens.dtype)
 
 
