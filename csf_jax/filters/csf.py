@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Callable, NamedTuple, Optional
+from typing import Callable, NamedTuple, Optional, Union
 
 import jax
 import jax.numpy as jnp
@@ -33,9 +33,9 @@ import numpy as np
 
 from csf_jax import _checks, networks, trained
 from csf_jax.filters.result import FilterResult, mark_nonfinite
-from csf_jax.inflation import adaptive_inflation
 from csf_jax.guidance import (GuidanceConfig, dps_gradient, guidance_displacement, kalman_tweedie,
                               resample_posterior)
+from csf_jax.inflation import STATISTICS, adaptive_inflation
 from csf_jax.networks import NetworkConfig
 from csf_jax.prior import PriorScore, exact_mixture_prior, gaussian_precision, learned_prior
 from csf_jax.sde import (bridge, diffusion_sq, inflated_time, marginal_std, marginal_std_host,
@@ -102,8 +102,8 @@ class CSFConfig:
         if not self.inflation_max > 0.0 or not np.isfinite(self.inflation_threshold):
             raise ValueError(f"CSFConfig needs inflation_max > 0 and a finite inflation_threshold, "
                              f"got {self.inflation_max}, {self.inflation_threshold}")
-        if self.inflation_statistic not in ("chi2", "median"):
-            raise ValueError(f"CSFConfig.inflation_statistic must be 'chi2' or 'median', got "
+        if self.inflation_statistic not in STATISTICS:
+            raise ValueError(f"CSFConfig.inflation_statistic must be one of {STATISTICS}, got "
                              f"{self.inflation_statistic!r}")
         n = self.encode_particles
         if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 2):
@@ -120,20 +120,21 @@ class SamplerStart(NamedTuple):
 
     precision: (d, d) the ensemble Gaussian's ``(C + tau^2 I)^{-1}`` (ancestral sampler), or None
       (Euler-Maruyama).
-    tau: scalar prior inflation of this filter step (``CSFConfig.prior_inflation``, or the adaptive
-      one of ``csf_jax.inflation``).
+    tau: prior inflation of this filter step: ``CSFConfig.prior_inflation`` (a float), or the
+      adaptive one of ``csf_jax.inflation`` (a scalar array).
     """
 
     precision: Optional[jax.Array]
-    tau: jax.Array
+    tau: Union[float, jax.Array]
 
 
 def step_inflation(config: CSFConfig, prior_ens, y=None, model: Optional[StateSpaceModel] = None,
                    guide=1.0):
-    """This filter step's prior inflation ``tau`` (scalar): fixed, or adaptive from the innovation
-    of ``y (m,)`` under ``prior_ens (N, d)`` when ``config.adaptive_inflation`` (and y is assimilated:
-    ``guide`` 1)."""
-    tau = jnp.asarray(config.prior_inflation, prior_ens.dtype)
+    """This filter step's prior inflation ``tau``: fixed (``config.prior_inflation``, a Python
+    float, so that the samplers keep their static shortcut for 0), or adaptive (a traced scalar) from
+    the innovation of ``y (m,)`` under ``prior_ens (N, d)`` when ``config.adaptive_inflation`` (and y
+    is assimilated: ``guide`` 1)."""
+    tau = config.prior_inflation
     if not config.adaptive_inflation or y is None:
         return tau
     adaptive = adaptive_inflation(prior_ens, y, model, config.prior_inflation,
