@@ -46,7 +46,9 @@ class GuidanceConfig:
     clip: for "clipped", the cap on a particle's guidance displacement per step, in units of the
       step's noise scale ``g(t) sqrt(dt) sqrt(d)``.
     iterations: for "kalman", Fisher-scoring steps per reverse step, warm-started from the previous
-      reverse step's solution (so the sampler as a whole makes L x iterations of them).
+      reverse step's solution (so the sampler as a whole makes L x iterations of them). Default 1:
+      against 2, the same RMSE on the double well and cubic10_indep, better on Cauchy, 27% less
+      time at d = 10 (docs/ablation.md).
     proposals: for "kalman", K draws per particle from the Laplace Gaussian ``N(u, A^{-1})``, of
       which one is kept by importance resampling against ``N(x0_hat, P) p(y | x_0)`` (the exact
       likelihood). The Laplace Gaussian sits at the mode; a skewed posterior (the cubic sensor)
@@ -56,7 +58,7 @@ class GuidanceConfig:
     mode: str = "kalman"
     scale: float = 1.0
     clip: float = 1.0
-    iterations: int = 2
+    iterations: int = 1
     proposals: int = 8
 
     def __post_init__(self):

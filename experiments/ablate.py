@@ -5,7 +5,7 @@
         [--out docs/ablation/cubic10_indep.json]
 
 Each ``--setting`` is a comma-separated list of ``CSFConfig`` fields (``field=value``, values read as
-Python literals); the pretrained prior of the problem, N = 1000 and the runs of
+Python literals; ``guidance.proposals=4`` sets a ``GuidanceConfig`` field); the pretrained prior of the problem, N = 1000 and the runs of
 ``experiments.run`` (seed 0: run i is the table's run i) are shared. EnKF on the same runs is the
 first row. Prints a markdown table (RMSE over the runs, per run, seconds per filter step, measured
 one run at a time after compilation) and appends the rows to ``--out`` (JSON, one object per row),
@@ -27,15 +27,25 @@ import jax
 import numpy as np
 
 import csf_jax
-from csf_jax import CSFConfig, problems
+from csf_jax import CSFConfig, GuidanceConfig, problems
 from csf_jax.pretrained import load_pretrained
 from experiments._cli import positive_int
 from experiments.run import _errors, machine, simulate_runs
 
 
+def make_config(setting: dict) -> CSFConfig:
+    """The ``CSFConfig`` of a parsed setting: ``guidance.<field>`` entries go to its
+    ``GuidanceConfig``."""
+    sub = {k.split(".", 1)[1]: v for k, v in setting.items() if k.startswith("guidance.")}
+    top = {k: v for k, v in setting.items() if not k.startswith("guidance.")}
+    return CSFConfig(**top, guidance=GuidanceConfig(**sub)) if sub else CSFConfig(**top)
+
+
 def parse_setting(text: str) -> dict:
-    """``"a=1,b=0.2"`` -> ``{"a": 1, "b": 0.2}``, checked against ``CSFConfig``'s fields."""
+    """``"a=1,b=0.2"`` -> ``{"a": 1, "b": 0.2}``, checked against ``CSFConfig``'s fields
+    (``guidance.<field>``: a ``GuidanceConfig`` field)."""
     fields = {f.name for f in dataclasses.fields(CSFConfig)}
+    fields |= {"guidance." + f.name for f in dataclasses.fields(GuidanceConfig)}
     out = {}
     for part in filter(None, text.split(",")):
         name, sep, value = part.partition("=")
@@ -47,7 +57,7 @@ def parse_setting(text: str) -> dict:
         except (ValueError, SyntaxError):
             raise argparse.ArgumentTypeError(f"{part!r}: the value is not a Python literal")
     try:
-        CSFConfig(**out)
+        make_config(out)
     except (ValueError, TypeError) as e:
         raise argparse.ArgumentTypeError(str(e))
     return out
@@ -62,9 +72,10 @@ def ablate(name: str, runs: int, settings, particles: int = 1000, seed: int = 0)
     truth = np.asarray(truth)
     K = obs.shape[1]
 
-    def row(label, means, seconds):
+    def row(label, means, seconds, config=None):
         err = _errors(np.stack(means), truth)
         return {"problem": name, "setting": label, "runs": runs, "particles": particles,
+                "config": None if config is None else dataclasses.asdict(config),
                 "rmse": float(np.sqrt(err.mean())),
                 "rmse_per_run": np.sqrt(err.mean(axis=1)).round(4).tolist(),
                 "seconds_per_step": seconds / (runs * K)}
@@ -76,14 +87,14 @@ def ablate(name: str, runs: int, settings, particles: int = 1000, seed: int = 0)
     rows = [row("EnKF", list(np.asarray(compiled(obs, ens, keys).mean)), time.perf_counter() - t0)]
     print(table(rows[-1:], header=True), flush=True)
     for setting in settings:
-        cfg = CSFConfig(**setting)
+        cfg = make_config(setting)
         fn = jax.jit(lambda o, e, k: csf_jax.filter(trained, o, e, problem=model, key=k, config=cfg,
                                                     check_finite=False).mean)
         compiled = fn.lower(obs[0], ens[0], keys[0]).compile()
         t0 = time.perf_counter()
         means = [np.asarray(compiled(obs[i], ens[i], keys[i])) for i in range(runs)]
         rows.append(row("CSF " + (", ".join(f"{k}={v}" for k, v in setting.items()) or "default"),
-                        means, time.perf_counter() - t0))
+                        means, time.perf_counter() - t0, cfg))
         print(table(rows[-1:]), flush=True)
     return rows
 
@@ -99,14 +110,15 @@ def table(rows, header: bool = False) -> str:
 
 
 def render(path: str) -> str:
-    """The markdown table of the rows in ``path`` (a ``--out`` file); repeated rows kept once."""
+    """The markdown table of the rows in ``path`` (a ``--out`` file); a row repeated (same problem,
+    setting and number of runs) is kept once, the first."""
     with open(path) as f:
         rows = json.load(f)["rows"]
     seen, problems_seen, kept = set(), [], []
     for r in rows:
-        if (r["problem"], r["setting"]) in seen:
+        if (r["problem"], r["setting"], r["runs"]) in seen:
             continue
-        seen.add((r["problem"], r["setting"]))
+        seen.add((r["problem"], r["setting"], r["runs"]))
         problems_seen += [r["problem"]] if r["problem"] not in problems_seen else []
         kept.append(r)
     kept.sort(key=lambda r: problems_seen.index(r["problem"]))

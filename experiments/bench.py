@@ -11,8 +11,9 @@ L reverse steps with the learned prior; random-init weights of the default ``Net
 is the double well, d > 1 the cubic sensor ``cubic<d>_indep``), with the sampler of
 ``--guidance``, the same on both sides:
 
-* ``kalman`` (default, ``CSFConfig()``'s sampler): the ancestral sampler with Kalman guidance,
-  L = ``CSFConfig().reverse_steps`` = 50 levels (``--steps`` defaults to it);
+* ``kalman`` (default, ``CSFConfig()``'s sampler, its adaptive inflation included): the ancestral
+  sampler with Kalman guidance, L = ``CSFConfig().reverse_steps`` = 20 levels (``--steps``
+  defaults to it);
 * ``clipped`` (the old default; ``raw``, ``normalized``, ``none`` likewise): Euler-Maruyama with
   DPS guidance, the paper's sampler; pass ``--steps 500`` for the paper's L.
 

@@ -95,7 +95,8 @@ def prior_vs_model(out: str, name: str, model, pretrained, config, ensemble0, ke
     post = result.ensembles[-1]
     prior_ens = propagate(model, k_prop, post)
     centers = jax.vmap(model.drift)(post)
-    context = prior.condition(params, centers, prior_ens, model.process_std)
+    context = prior.condition(params, centers, prior_ens[:config.encode_particles],
+                              model.process_std)
     x_init = marginal_std(1.0, config.sigma_max) * jax.random.normal(k_init, prior_ens.shape)
     # the model's own prior: no inflation, no guidance
     generated = posterior_sample(params, prior, context, lambda x0: 0.0, x_init, k_rev,

@@ -175,11 +175,11 @@ def metrics(ens: np.ndarray, exact: Exact, truth: np.ndarray) -> dict:
     }
 
 
-SAMPLERS = {
-    "kalman": lambda L: CSFConfig(reverse_steps=L, prior_inflation=0.0),
-    "dps clipped": lambda L: CSFConfig(reverse_steps=L, prior_inflation=0.0,
+SAMPLERS = {  # inflation 0, fixed: the exact Bayes update of the one step
+    "kalman": lambda L: CSFConfig(reverse_steps=L, prior_inflation=0.0, adaptive_inflation=False),
+    "dps clipped": lambda L: CSFConfig(reverse_steps=L, prior_inflation=0.0, adaptive_inflation=False,
                                        guidance=GuidanceConfig(mode="clipped")),
-    "dps raw": lambda L: CSFConfig(reverse_steps=L, prior_inflation=0.0,
+    "dps raw": lambda L: CSFConfig(reverse_steps=L, prior_inflation=0.0, adaptive_inflation=False,
                                    guidance=GuidanceConfig(mode="raw")),
 }
 

@@ -24,8 +24,9 @@ imported first) and spreads a batch's runs over them with ``shard_map``. Runs ar
 only the wall-clock time changes: on the 2-core dev machine 1.07x faster for CSF (XLA already
 keeps both cores busy on one run), 1.39x for SF.
 
-SF's online training makes it the slow column on a CPU: there the default is SF on the first 2 runs
-(one batch; the page and the table say so); ``--sf-runs 10`` runs it on all.
+SF's online training makes it the slow column on a CPU: there the default is SF on the first run,
+its training batch split over the cores (``csf_jax.score_filter(..., shards=)``; the page and the
+table say so); ``--sf-runs 10`` runs it on all.
 
 The full seven-problem table of the README is ``python -m experiments.table``.
 """
@@ -34,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import hashlib
 import json
 import os
@@ -67,7 +69,12 @@ METHODS = ("csf", "sf", "enkf", "pf")
 LABELS = {"csf": "CSF", "sf": "SF", "enkf": "EnKF", "pf": "PF"}
 QUICK = dict(runs=2, particles=100, steps=20, num_steps=10)
 QUICK_SF = SFConfig(train_steps=20, warmup_steps=100)
-CPU_SF_RUNS = 2  # the CLI's default SF runs on a CPU (module doc)
+CPU_SF_RUNS = 1  # the CLI's default SF runs on a CPU (module doc)
+# Per-problem CSFConfig fields of the tables (CSF's sampler, shared by SF), on top of the defaults.
+# triple_well is the transfer experiment: it filters with the double-well prior, a wrong model, and
+# model error is what inflation is for. A base inflation of 1.0 (adaptive on top) gave 0.079 on the
+# table's 10 runs against 0.144 with the default 0.2 (0.7: 0.079, 1.5: 0.084; docs/ablation.md).
+CSF_OVERRIDES = {"triple_well": {"prior_inflation": 1.0}}
 
 
 class Progress:
@@ -110,22 +117,29 @@ def run_keys(seed: int, runs: int):
     return keys.T
 
 
-def simulate_runs(model, runs: int, particles: int, seed: int):
-    """``truth (R, K+1, d)``, ``obs (R, K, m)``, ``shocks (R, K)`` bool, ``ens (R, N, d)``, filter
-    keys ``(R,)``."""
-    k_sim, k_ens, k_filt = run_keys(seed, runs)
+@functools.partial(jax.jit, static_argnames=("model", "particles"))
+def _simulate(model, k_sim, k_ens, particles: int):
     truth, obs = jax.vmap(lambda k: csf_jax.simulate(model, k))(k_sim)
     shocks = jax.vmap(lambda k: csf_jax.shock_steps(model, k))(k_sim)
     ens = jax.vmap(lambda k: model.initial_ensemble(k, particles))(k_ens)
-    return truth, obs, shocks, ens, k_filt
+    return truth, obs, shocks, ens
+
+
+def simulate_runs(model, runs: int, particles: int, seed: int):
+    """``truth (R, K+1, d)``, ``obs (R, K, m)``, ``shocks (R, K)`` bool, ``ens (R, N, d)``, filter
+    keys ``(R,)``. One compiled computation: op by op it compiled ~50 small ones (3-6 s on 2 cores),
+    and its numbers differ from these in the last bits (tables before 2026-11-23 were made so)."""
+    k_sim, k_ens, k_filt = run_keys(seed, runs)
+    return (*_simulate(model, k_sim, k_ens, particles), k_filt)
 
 
 def method_fn(method: str, model, config: CSFConfig, sf: SFConfig, pretrained, progress,
-              return_ensembles: bool = False):
+              return_ensembles: bool = False, sf_shards: int = 1):
     """``(obs (K, m), ens (N, d), key) -> FilterResult`` for one run of ``method``.
 
     pretrained: a ``csf_jax.pretrained.Pretrained`` for CSF (passed whole: the filter checks it
     was trained for ``model``), or None for the exact mixture prior.
+    sf_shards: SF's training batch split over this many local devices (``score_filter``).
     """
     if method == "csf":
         return lambda o, e, k: csf_jax.filter(pretrained, o, e, problem=model, key=k, config=config,
@@ -133,7 +147,8 @@ def method_fn(method: str, model, config: CSFConfig, sf: SFConfig, pretrained, p
     if method == "sf":
         return lambda o, e, k: csf_jax.score_filter(o, e, problem=model, key=k, config=sf,
                                                     sampler=config, progress=progress,
-                                                    return_ensembles=return_ensembles)
+                                                    return_ensembles=return_ensembles,
+                                                    shards=sf_shards)
     if method == "enkf":
         return lambda o, e, k: csf_jax.ensemble_kalman_filter(o, e, problem=model, key=k)
     if method == "pf":
@@ -266,6 +281,24 @@ def default_batch(method: str, runs: int) -> int:
     return max(1, min(runs, jax.local_device_count()))
 
 
+def csf_config(name: str, steps: int = CSFConfig().reverse_steps,
+               guidance: str = GuidanceConfig().mode) -> CSFConfig:
+    """The CSF (and SF sampler) config of problem ``name`` in the tables: ``steps`` reverse steps,
+    the ``guidance`` mode, ``CSF_OVERRIDES[name]``, defaults otherwise."""
+    return CSFConfig(reverse_steps=steps, guidance=GuidanceConfig(mode=guidance),
+                     **CSF_OVERRIDES.get(name, {}))
+
+
+def sf_shards(runs: int, sf: SFConfig) -> int:
+    """Devices one SF run's training batch is split over: on a CPU with several XLA host devices
+    and a single SF run, as many as divide ``sf.batch`` (more runs are spread over the devices
+    instead, ``default_batch``); else 1."""
+    n = jax.local_device_count()
+    if runs != 1 or jax.default_backend() != "cpu" or n < 2:
+        return 1
+    return max(k for k in range(1, n + 1) if sf.batch % k == 0)
+
+
 def run(name: str, methods=METHODS, runs: int = 10, particles: int = 1000,
         steps: int = CSFConfig().reverse_steps, seed: int = 0, num_steps: Optional[int] = None, prior: str = "pretrained",
         out: Optional[str] = None, batch: Optional[int] = None, sf: SFConfig = SFConfig(),
@@ -283,7 +316,7 @@ def run(name: str, methods=METHODS, runs: int = 10, particles: int = 1000,
     overrides = {} if num_steps is None else {"num_steps": num_steps}
     model = problems.get(name, **overrides)
     pretrained = load_pretrained(name) if prior == "pretrained" and "csf" in methods else None
-    config = CSFConfig(reverse_steps=steps, guidance=GuidanceConfig(mode=guidance))
+    config = csf_config(name, steps, guidance)
     truth, obs, shocks, ens, keys = simulate_runs(model, runs, particles, seed)
     truth, shocks_np = np.asarray(truth), np.asarray(shocks)
     K = obs.shape[1]
@@ -311,7 +344,8 @@ def run(name: str, methods=METHODS, runs: int = 10, particles: int = 1000,
                                          "model": cfg["csf_model_id"]} if method == "csf" else
                               {"sf": cfg["sf"], "csf": cfg["csf"]} if method == "sf" else None})
         bar = Progress(LABELS[method], r_m * K, enabled=progress and method in ("csf", "sf"))
-        fn = method_fn(method, model, config, sf, pretrained, bar)
+        fn = method_fn(method, model, config, sf, pretrained, bar,
+                       sf_shards=sf_shards(r_m, sf) if method == "sf" else 1)
         b = batch or default_batch(method, r_m)
         mean, seconds, compile_s, at_once = _filter_runs(method, fn, obs[:r_m], ens[:r_m],
                                                          keys[:r_m], b, cache, ident, bar)
@@ -392,7 +426,7 @@ def main(argv=None):
     p.add_argument("--runs", type=positive_int, default=None, help="independent runs (default 10)")
     p.add_argument("--particles", type=particle_count, default=None, help="N (default 1000)")
     p.add_argument("--steps", type=particle_count, default=None,
-                   help="reverse steps L, at least 2 (default 50)")
+                   help=f"reverse steps L, at least 2 (default {CSFConfig().reverse_steps})")
     p.add_argument("--guidance", choices=MODES, default=GuidanceConfig().mode,
                    help="CSF's and SF's sampler: 'kalman' (default, ancestral with Kalman "
                         "guidance) or a DPS mode with Euler-Maruyama (the paper's: --guidance "
@@ -424,7 +458,9 @@ def main(argv=None):
         sf_runs = min(runs, CPU_SF_RUNS)
     print(f"{args.problem}: {runs} runs, N={particles}, L={steps} ({args.guidance}), methods {', '.join(methods)}; "
           f"SF budget {sf.train_steps} Adam steps x {sf.batch} per filter step "
-          f"(+{sf.warmup_steps} warm-up)", file=sys.stderr)
+          f"(+{sf.warmup_steps} warm-up)"
+          + "".join(f"; {k}={v} (CSF_OVERRIDES)" for k, v in CSF_OVERRIDES.get(args.problem, {}).items()),
+          file=sys.stderr)
     results = run(args.problem, methods, runs, particles, steps, args.seed,
                   num_steps=q.get("num_steps"), prior=args.prior, out=args.out, batch=args.batch,
                   sf=sf, method_runs=None if sf_runs is None else {"sf": sf_runs},

@@ -16,6 +16,7 @@ cannot afford; the page marks such cells. ``--write-only`` only rewrites the pag
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -86,6 +87,10 @@ def render(results: dict, command: str) -> str:
             note = f", {runs} runs" if runs != res["config"]["runs"] or runs != 10 else ""
             cells.append(f"{text} ({PAPER_RMSE[m][j]}{note})")
         lines.append(f"| {run_mod.LABELS[m]} | " + " | ".join(cells) + " |")
+    differ = _config_differences(results)
+    if differ:
+        lines += ["", "CSF (and SF's sampler) settings other than `CSFConfig()`'s, per column "
+                  "(`experiments.run.CSF_OVERRIDES`): " + "; ".join(differ) + "."]
     lines += ["", "RMSE before / after the first shock of each run (where the error comes from):",
               "", "| method | " + " | ".join(HEADERS) + " |", "|---" * (len(HEADERS) + 1) + "|"]
     fmt = lambda v: "-" if v is None else _num(v)
@@ -118,11 +123,26 @@ def render(results: dict, command: str) -> str:
     lines += ["", "Per run: the wall-clock time of all runs over runs x filter steps; runs at once: " +
               ", ".join(f"{run_mod.LABELS[m]} {'/'.join(map(str, sorted(v)))}"
                         for m, v in at_once.items()) + "."]
-    machines = {json.dumps(r["machine"], sort_keys=True) for r in results.values()}
-    lines += ["", "Measured on: " + "; ".join(
-        f"{m['cpu']} ({m['cpu_count']} cores, jax backend {m['jax_backend']})"
-        for m in map(json.loads, sorted(machines))) + "."]
+    machines = sorted({f"{m['cpu']} ({m['cpu_count']} cores, jax backend {m['jax_backend']})"
+                       for m in (r["machine"] for r in results.values())})
+    lines += ["", "Measured on: " + "; ".join(machines) + "."]
     return "\n".join(lines)
+
+
+def _config_differences(results: dict) -> list:
+    """``["triple_well: prior_inflation=1.0", ...]``: each column's CSF config fields that differ
+    from ``CSFConfig()`` (reverse steps and guidance mode apart: the page's command names those)."""
+    default = dataclasses.asdict(run_mod.CSFConfig())
+    out = []
+    for name in COLUMNS:
+        if name not in results:
+            continue
+        used = results[name]["config"]["csf"]
+        fields = [f"{k}={used[k]}" for k in default
+                  if k not in ("reverse_steps", "guidance") and k in used and used[k] != default[k]]
+        if fields:
+            out.append(f"{name}: {', '.join(fields)}")
+    return out
 
 
 def write_page(path: str, body: str) -> None:

@@ -29,8 +29,10 @@ Every piece mirrors a csf_jax one:
 * :func:`torch_problem`: the drift, log-likelihood, its gradient, the observation's Jacobian and
   the noise's Fisher information of ``csf_jax.problems`` (cubic sensors, Cauchy, double/triple
   well).
-* :func:`filter_step`: one step of ``csf_jax.filters.csf._csf_scan`` (propagate, encode, L reverse
-  steps).
+* :func:`filter_step`: one step of ``csf_jax.filters.csf._csf_scan`` (propagate, encode, the
+  step's prior inflation, L reverse steps); :func:`adaptive_inflation` and :func:`step_schedule`:
+  ``csf_jax.inflation`` and ``csf_jax.filters.csf.step_inflation`` (the default adaptive
+  inflation, median or chi-square statistic).
 
 :func:`make_reverse_step` returns the per-reverse-step function of the configured sampler, eager
 or wrapped by ``torch.compile(..., dynamic=False)``. All random draws can be injected
@@ -51,6 +53,7 @@ from torch import nn
 from csf_jax.filters.csf import CSFConfig
 from csf_jax.guidance import GuidanceConfig
 from csf_jax.networks import NetworkConfig, fourier_frequencies
+from csf_jax import problems
 from csf_jax.problems import CubicConfig, WellConfig
 from csf_jax.problems import config as problem_config
 from csf_jax.problems.cubic import coupling_matrix
@@ -82,7 +85,7 @@ class Schedule(NamedTuple):
     t: times ``linspace(1, t_min, L)``.  t_score: the times at which the prior score is evaluated
     (``csf_jax.sde.inflated_time``: t itself without prior inflation).  var: ``sigma_t^2``.
     g2dt: ``g(t)^2 dt``.  noise_scale: ``g(t) sqrt(dt)``.  noise_on: 1.0, or 0.0 at the last step
-    when ``denoise_last``.
+    when ``denoise_last``.  inflation, sigma_max, adaptive: as in :class:`AncestralSchedule`.
     """
 
     t: torch.Tensor
@@ -91,6 +94,10 @@ class Schedule(NamedTuple):
     g2dt: torch.Tensor
     noise_scale: torch.Tensor
     noise_on: torch.Tensor
+    inflation: float | torch.Tensor = 0.0
+    sigma_max: float = 25.0
+    adaptive: Optional["AdaptiveInflation"] = None
+    encode_particles: Optional[int] = None
 
 
 def time_of_std(sigma: torch.Tensor, sigma_max: float) -> torch.Tensor:
@@ -120,7 +127,8 @@ def em_schedule(config: CSFConfig, dtype: torch.dtype = DTYPE) -> Schedule:
         noise_on[-1] = 0.0
     var = marginal_std(t, config.sigma_max) ** 2
     t_score = inflated_time(t, config.prior_inflation, config.sigma_max)
-    return Schedule(t, t_score, var, g2dt, torch.sqrt(g2dt), noise_on)
+    return Schedule(t, t_score, var, g2dt, torch.sqrt(g2dt), noise_on, config.prior_inflation,
+                    config.sigma_max, _adaptive(config), config.encode_particles)
 
 
 class AncestralSchedule(NamedTuple):
@@ -132,8 +140,12 @@ class AncestralSchedule(NamedTuple):
     rho, noise_scale: ``rho`` and ``sqrt(v)`` of ``csf_jax.sde.bridge(sigma_l, sigma_{l+1})``.
     first: bool, True at ``l = 0`` (where the Fisher scoring starts from ``x0_hat``).
     sigma_start: 0-d ``marginal_std(1)``, the noise added to the prior ensemble at the start.
-    inflation: tau, the prior inflation of :func:`gaussian_precision`.
+    inflation: tau, the prior inflation of :func:`gaussian_precision` (with ``adaptive``: its base).
     proposals: K, the importance-resampling candidates per particle.
+    sigma_max: the VE SDE's scale.
+    adaptive: None (fixed inflation), or :class:`AdaptiveInflation` (``CSFConfig.adaptive_inflation``):
+      :func:`step_schedule` then sets ``inflation`` and ``t_score`` per filter step.
+    encode_particles: the encoder sees the first n particles of the prior ensemble (None: all).
     """
 
     sigma: torch.Tensor
@@ -142,8 +154,19 @@ class AncestralSchedule(NamedTuple):
     noise_scale: torch.Tensor
     first: torch.Tensor
     sigma_start: torch.Tensor
-    inflation: float
+    inflation: float | torch.Tensor
     proposals: int
+    sigma_max: float = 25.0
+    adaptive: Optional["AdaptiveInflation"] = None
+    encode_particles: Optional[int] = None
+
+
+class AdaptiveInflation(NamedTuple):
+    """``CSFConfig``'s adaptive-inflation settings (``csf_jax.inflation.adaptive_inflation``)."""
+
+    threshold: float
+    max_tau: float
+    statistic: str
 
 
 def noise_levels(config: CSFConfig, dtype: torch.dtype = DTYPE) -> torch.Tensor:
@@ -166,7 +189,61 @@ def ancestral_schedule(config: CSFConfig, dtype: torch.dtype = DTYPE) -> Ancestr
     first = torch.arange(config.reverse_steps) == 0
     sigma_start = marginal_std(torch.tensor(1.0, dtype=dtype), config.sigma_max)
     return AncestralSchedule(sigma, t_score, rho, torch.sqrt(var), first, sigma_start,
-                             config.prior_inflation, config.guidance.proposals)
+                             config.prior_inflation, config.guidance.proposals, config.sigma_max,
+                             _adaptive(config), config.encode_particles)
+
+
+def _adaptive(config: CSFConfig) -> Optional[AdaptiveInflation]:
+    """The adaptive-inflation settings of ``config``, or None for a fixed inflation."""
+    if not config.adaptive_inflation:
+        return None
+    return AdaptiveInflation(config.inflation_threshold, config.inflation_max,
+                             config.inflation_statistic)
+
+
+def adaptive_inflation(problem: "TorchProblem", prior_ens: torch.Tensor, y: torch.Tensor,
+                       base: float, settings: AdaptiveInflation,
+                       iterations: int = 60) -> torch.Tensor:
+    """``csf_jax.inflation.adaptive_inflation`` (0-d tau) for ``prior_ens (N, d)``, ``y (m,)``:
+    the innovation ``e = y - mean h(x_i)``, ``v = var h(x_i) + r + base^2 g``, ``g`` the mean squared
+    Jacobian rows; the median statistic or the chi-square one (bisection in ``log s``)."""
+    hx = prior_ens ** 3  # every TorchProblem observes x^3
+    jac = problem.observe_jacobian(prior_ens)
+    g = torch.sum(jac * jac, -1).mean(0)
+    e2 = torch.square(y - hx.mean(0))
+    v = hx.var(0, correction=0) + problem.gaussian_std ** 2 + base ** 2 * g
+    m = e2.shape[-1]
+    zero = torch.zeros((), dtype=prior_ens.dtype)
+    if settings.statistic == "median":
+        votes = torch.sum(e2 / v > 1.0 + settings.threshold * math.sqrt(2.0))
+        s = torch.quantile(torch.clamp((e2 - v) / g, min=0.0), 0.5)  # the midpoint, as jnp.median
+        s = torch.where(votes > m / 2, torch.clamp(s, max=settings.max_tau ** 2), zero)
+        return torch.sqrt(base ** 2 + s)
+
+    def stat(s):
+        return torch.sum(e2 / (v + s * g))
+
+    surprised = stat(zero) > m + settings.threshold * math.sqrt(2.0 * m)
+    lo = torch.log(torch.tensor(1e-8, dtype=v.dtype))
+    hi = torch.log(torch.tensor(settings.max_tau ** 2, dtype=v.dtype))
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        too_small = stat(torch.exp(mid)) > m
+        lo, hi = torch.where(too_small, mid, lo), torch.where(too_small, hi, mid)
+    return torch.sqrt(base ** 2 + torch.where(surprised, torch.exp(hi), zero))
+
+
+def step_schedule(sched, problem: "TorchProblem", prior_ens: torch.Tensor, y: torch.Tensor,
+                  guide: torch.Tensor):
+    """This filter step's schedule (:class:`AncestralSchedule` or :class:`Schedule`): ``sched``
+    itself (fixed inflation, or ``y`` not assimilated), or with the adaptive tau and the score times
+    it moves (``csf_jax.filters.csf.step_inflation``)."""
+    if sched.adaptive is None or not bool(guide > 0):
+        return sched
+    tau = adaptive_inflation(problem, prior_ens, y, sched.inflation, sched.adaptive)
+    t = (time_of_std(sched.sigma, sched.sigma_max) if isinstance(sched, AncestralSchedule)
+         else sched.t)
+    return sched._replace(t_score=inflated_time(t, tau, sched.sigma_max), inflation=tau)
 
 
 def uses_kalman(config: CSFConfig) -> bool:
@@ -178,11 +255,8 @@ def uses_kalman(config: CSFConfig) -> bool:
 def schedule(config: CSFConfig, dtype: torch.dtype = DTYPE):
     """The configured sampler's schedule: :class:`AncestralSchedule` for ``"kalman"``, else the
     Euler-Maruyama :class:`Schedule`; tensors in ``dtype`` (float64 only for tests: the port is
-    float32 like csf_jax by default). The port has the fixed prior inflation only: a config with
-    ``adaptive_inflation`` (opt-in, not the default) is refused rather than silently run without it."""
-    if config.adaptive_inflation:
-        raise NotImplementedError("experiments.torch_csf: CSFConfig.adaptive_inflation is not ported "
-                                  "(the benchmark runs the default config, fixed inflation)")
+    float32 like csf_jax by default). With ``adaptive_inflation`` :func:`filter_step` sets the
+    inflation per filter step (:func:`step_schedule`)."""
     make = ancestral_schedule if uses_kalman(config) else em_schedule
     return make(config, dtype)
 
@@ -358,6 +432,8 @@ class TorchProblem(NamedTuple):
     observe_jacobian: ``x (N, d) -> (N, m, d)``, ``dh/dx`` (dense, as ``jax.jacfwd`` gives it).
     weight: ``(y (m,), x (N, d)) -> (N, m)``, the guidance's curvature weights at ``y - h(x)``
     (``ObservationNoise.curvature``).
+    gaussian_std: ``ObservationNoise.gaussian_std``, the noise's Gaussian stand-in (the adaptive
+    inflation's ``r``).
     """
 
     name: str
@@ -368,6 +444,7 @@ class TorchProblem(NamedTuple):
     loglik_grad: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
     observe_jacobian: Callable[[torch.Tensor], torch.Tensor]
     weight: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+    gaussian_std: float
 
 
 class CubicSensor(NamedTuple):
@@ -416,6 +493,11 @@ def _cubic_sensor(kind: str, scale: float) -> CubicSensor:
                        lambda x: torch.diag_embed(3.0 * x * x), lambda y, x: weight(y - x**3))
 
 
+def _gaussian_std(c: CubicConfig) -> float:
+    """``ObservationNoise.gaussian_std`` of the csf_jax problem (Cauchy: a derived constant)."""
+    return float(problems.build(c).obs_noise.gaussian_std)
+
+
 def _cubic(c: CubicConfig) -> TorchProblem:
     a_t = torch.from_numpy(coupling_matrix(c.dim).T.copy()) if c.correlated else None
 
@@ -425,7 +507,8 @@ def _cubic(c: CubicConfig) -> TorchProblem:
 
     kind = "corr" if c.correlated else "indep"
     name = "cauchy" if c.noise == "cauchy" else f"cubic{c.dim}_{kind}"
-    return TorchProblem(name, c.dim, c.process_std, drift, *_cubic_sensor(c.noise, c.obs_scale))
+    return TorchProblem(name, c.dim, c.process_std, drift, *_cubic_sensor(c.noise, c.obs_scale),
+                        _gaussian_std(c))
 
 
 def _well(c: WellConfig) -> TorchProblem:
@@ -441,7 +524,7 @@ def _well(c: WellConfig) -> TorchProblem:
         return x + step if c.include_state else step
 
     return TorchProblem(f"{c.wells}_well", 1, math.sqrt(c.dt) * c.process_std, drift,
-                        *_cubic_sensor("gaussian", c.obs_std))
+                        *_cubic_sensor("gaussian", c.obs_std), c.obs_std)
 
 
 def torch_problem(name: str, **overrides) -> TorchProblem:
@@ -727,7 +810,8 @@ def filter_step(nets: Networks, problem: TorchProblem, step: Callable, sched,
         draw = lambda: torch.randn(ensemble.shape, generator=generator, dtype=ensemble.dtype)
         noise = StepNoise(draw(), draw(), None)
     prior_ens = problem.drift(ensemble) + problem.process_std * noise.prop
-    code = nets.encoder(prior_ens)
+    code = nets.encoder(prior_ens[:sched.encode_particles])
+    sched = step_schedule(sched, problem, prior_ens, y, guide)
     if isinstance(sched, AncestralSchedule):
         x_init = prior_ens + sched.sigma_start * noise.x_init
         precision = gaussian_precision(prior_ens, sched.inflation)
@@ -744,7 +828,8 @@ def first_reverse_step(nets: Networks, step: Callable, sched, ensemble: torch.Te
     prior ensemble and the current state, with noise from torch's global generator: what
     ``torch.compile`` compiles on (e.g. to time the compilation). Returns the new state ``(N, d)``.
     """
-    code, guide = nets.encoder(ensemble), torch.tensor(1.0, dtype=ensemble.dtype)
+    code = nets.encoder(ensemble[:sched.encode_particles])
+    guide = torch.tensor(1.0, dtype=ensemble.dtype)
     if isinstance(sched, AncestralSchedule):
         precision = gaussian_precision(ensemble, sched.inflation)
         level = draw_level(tuple(ensemble.shape), sched.proposals, dtype=ensemble.dtype)

@@ -11,7 +11,12 @@ def test_parse_setting():
     assert ablate.parse_setting("reverse_steps=20,prior_inflation=0.2") == {
         "reverse_steps": 20, "prior_inflation": 0.2}
     assert ablate.parse_setting("adaptive_inflation=True") == {"adaptive_inflation": True}
-    for bad in ("steps=20", "reverse_steps", "reverse_steps=x y", "reverse_steps=1"):
+    assert ablate.parse_setting("guidance.proposals=4,reverse_steps=5") == {
+        "guidance.proposals": 4, "reverse_steps": 5}
+    cfg = ablate.make_config({"guidance.proposals": 4, "reverse_steps": 5})
+    assert cfg.guidance.proposals == 4 and cfg.reverse_steps == 5 and cfg.guidance.mode == "kalman"
+    for bad in ("steps=20", "reverse_steps", "reverse_steps=x y", "reverse_steps=1",
+                "guidance.proposals=0", "guidance.nothing=1"):
         with pytest.raises(argparse.ArgumentTypeError):
             ablate.parse_setting(bad)
 
@@ -23,6 +28,7 @@ def test_tiny_ablation_rows(tmp_path):
     assert [r["setting"] for r in rows] == [
         "EnKF", "CSF reverse_steps=3", "CSF reverse_steps=3, adaptive_inflation=True"]
     assert all(0.0 < r["rmse"] < 5.0 for r in rows)
+    assert rows[0]["config"] is None and rows[2]["config"]["adaptive_inflation"] is True
     assert "| double_well | EnKF |" in ablate.table(rows, header=True)
     path = tmp_path / "rows.json"
     path.write_text(__import__("json").dumps({"rows": rows + rows[:1]}))

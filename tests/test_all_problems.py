@@ -38,8 +38,9 @@ def test_quick_main_job(name, tmp_path, capsys):
     assert res["problem"] == name and res["config"]["csf_model"] == MODEL_FOR[name]
     K = run.QUICK["num_steps"]
     for m in run.METHODS:
-        assert res["runs_used"][m] == run.QUICK["runs"]
-        assert len(res["rmse_per_run"][m]) == run.QUICK["runs"]
+        runs = min(run.QUICK["runs"], run.CPU_SF_RUNS) if m == "sf" else run.QUICK["runs"]
+        assert res["runs_used"][m] == runs  # SF: the CPU default (this suite runs on a CPU)
+        assert len(res["rmse_per_run"][m]) == runs
         assert len(res["rmse_over_time"][m]) == K
         assert res["rmse"][m] >= res["rmse_per_dim"][m] > 0  # finite, positive
         assert res["seconds_per_step"][m] > 0
@@ -134,3 +135,19 @@ def test_cli_runs_sf_on_fewer_runs_on_cpu_and_says_so(capsys):
     run.main(["double_well", "--quick", "--runs", "3", "--methods", "sf", "--sf-runs", "3",
               "--no-progress"])
     assert "| SF | 3 |" in capsys.readouterr().out
+
+
+def test_table_configs_and_sf_shards():
+    """The tables' CSF config: the defaults with the problem's ``CSF_OVERRIDES`` (the triple well's
+    base inflation), ``--steps``/``--guidance`` on top; one SF run is split over the host devices
+    only when there are several (here one: this process started jax with one device)."""
+    assert run.csf_config("double_well") == CSFConfig()
+    tw = run.csf_config("triple_well", 7, "clipped")
+    assert tw.prior_inflation == run.CSF_OVERRIDES["triple_well"]["prior_inflation"] != \
+        CSFConfig().prior_inflation
+    assert (tw.reverse_steps, tw.guidance.mode) == (7, "clipped")
+    sf = csf_jax.SFConfig()
+    assert run.sf_shards(2, sf) == 1
+    assert run.sf_shards(1, sf) == (1 if jax.local_device_count() == 1 else
+                                    max(k for k in range(1, jax.local_device_count() + 1)
+                                        if sf.batch % k == 0))

@@ -1,5 +1,6 @@
 """The CSF online stage: exact-prior CSF against the Kalman filter, batching, keys, bad inputs."""
 
+import dataclasses
 import functools
 
 import jax
@@ -11,7 +12,8 @@ from conftest import make_linear_case
 import csf_jax
 from csf_jax import CSFConfig, GuidanceConfig, NetworkConfig, problems
 
-FAST = CSFConfig(reverse_steps=100, prior_inflation=0.0)  # the exact Bayes update: no inflation
+FAST = CSFConfig(reverse_steps=100, prior_inflation=0.0,
+                 adaptive_inflation=False)  # the exact Bayes update: no inflation
 TINY_NET = NetworkConfig(hidden=16, heads=2, blocks=1, code_dim=8, score_hidden=32,
                          score_layers=2)
 
@@ -34,7 +36,8 @@ def test_exact_prior_csf_tracks_kalman(kalman_case, mode, x64):
     1.25 rms / 2.9 max away, so the bounds fail a filter that ignores the data.
     """
     case = kalman_case
-    cfg = CSFConfig(reverse_steps=100, guidance=GuidanceConfig(mode=mode), prior_inflation=0.0)
+    cfg = CSFConfig(reverse_steps=100, guidance=GuidanceConfig(mode=mode), prior_inflation=0.0,
+                    adaptive_inflation=False)
     r = csf_jax.filter(None, case.obs, case.ensemble, problem=case.model, key=jax.random.key(5),
                        config=cfg)
     err = case.errors(r.mean, r.std)
@@ -51,8 +54,7 @@ def test_paper_skip_first_observation(kalman_case, x64):
     kw = dict(problem=case.model, key=jax.random.key(5))
     on = csf_jax.filter(None, case.obs, case.ensemble, config=FAST, **kw)
     off = csf_jax.filter(None, case.obs, case.ensemble,
-                         config=CSFConfig(reverse_steps=100, assimilate_first=False,
-                                          prior_inflation=0.0), **kw)
+                         config=dataclasses.replace(FAST, assimilate_first=False), **kw)
     z_on = jnp.abs((on.mean[0] - case.kalman.mean[0]) / case.kalman.std[0]).max()
     z_off = jnp.abs((off.mean[0] - case.kalman.mean[0]) / case.kalman.std[0]).max()
     assert float(z_off) > float(z_on)

@@ -9,7 +9,7 @@ import pytest
 from csf_jax import CSFConfig, GuidanceConfig
 from experiments import posterior_quality as pq
 
-DEFAULT = CSFConfig(prior_inflation=0.0)
+DEFAULT = CSFConfig(prior_inflation=0.0, adaptive_inflation=False)
 
 
 def _row(case, config, trials=16):

@@ -21,6 +21,7 @@ import csf_jax  # noqa: E402
 from csf_jax import CSFConfig, NetworkConfig, networks, problems  # noqa: E402
 from csf_jax.guidance import GuidanceConfig, dps_gradient, guidance_displacement  # noqa: E402
 from csf_jax.guidance import kalman_tweedie  # noqa: E402
+from csf_jax.inflation import adaptive_inflation  # noqa: E402
 from csf_jax.prior import gaussian_precision  # noqa: E402
 from csf_jax.sde import (bridge, diffusion_sq, inflated_time, marginal_std,  # noqa: E402
                          marginal_std_host, noise_levels, reverse_grid, time_of_std)
@@ -212,7 +213,8 @@ def test_reverse_steps_match_with_injected_noise(config_name, name):
         window = slice(start, start + 5)
         want = run_jax(x, noise.eps, tuple(g[window] for g in grid))
         tx, ty, tcode, teps = map(_t, (x, y, code, noise.eps))
-        got = tc.posterior_sample(step, tc.Schedule(*(a[window] for a in sched)), tx, ty, tcode,
+        got = tc.posterior_sample(step, sched._replace(**{f: getattr(sched, f)[window] for f in
+                                                          tc.Schedule._fields[:6]}), tx, ty, tcode,
                                   torch.tensor(1.0), teps)
         _close(got, want, 1e-5)
 
@@ -226,7 +228,8 @@ def test_filter_step_matches_with_injected_noise():
     name = "cubic10_corr"
     config, params, tnets = _weights("default")
     model, tp, n = problems.get(name), tc.torch_problem(name), 48
-    csf = CSFConfig(reverse_steps=20, prior_inflation=0.0, guidance=CLIPPED)
+    csf = CSFConfig(reverse_steps=20, prior_inflation=0.0, adaptive_inflation=False,
+                    guidance=CLIPPED)
     ens, y = _ensemble(n, scale=0.8), _obs(D)
     noise = _noise(n, D, 20, seed=12)
     want = jax.jit(_jax_filter_step, static_argnums=(1, 2, 6))(params, config, model, ens, y,
@@ -314,15 +317,17 @@ def _as_float64(tnets):
     return tc.Networks(*(copy.deepcopy(m).double() for m in tnets))
 
 
-def _ancestral_errors(name, config_name, csf: CSFConfig, num_steps, dtype, n=48):
+def _ancestral_errors(name, config_name, csf: CSFConfig, num_steps, dtype, n=48, obs_shift=0.3):
     """``csf_jax.filter`` against the torch port fed csf_jax's own draws: the max error of each
-    filter step's posterior ensemble relative to its scale, ``(num_steps,)``."""
+    filter step's posterior ensemble relative to its scale, ``(num_steps,)``. ``obs_shift``: the
+    truth's mean behind the observations (the ensemble's is 0.5)."""
     model, tp = problems.get(name), tc.torch_problem(name)
     config, params, tnets = _weights(config_name, model.dim)
     params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float32), params)
     tnets = _as_float64(tnets) if dtype == np.float64 else tnets
     ens = _ensemble(n, d=model.dim, scale=0.8).astype(dtype)
-    obs = np.stack([_obs(model.obs_dim, seed=20 + k) for k in range(num_steps)]).astype(dtype)
+    obs = np.stack([_obs(model.obs_dim, seed=20 + k, shift=obs_shift)
+                    for k in range(num_steps)]).astype(dtype)
     key = jax.random.key(5)
     want = csf_jax.filter(params, obs, ens, problem=model, key=key, config=csf, network=config,
                           return_ensembles=True).ensembles
@@ -338,7 +343,7 @@ def _ancestral_errors(name, config_name, csf: CSFConfig, num_steps, dtype, n=48)
 
 
 def test_ancestral_schedule_matches():
-    """Noise levels, score times (prior inflation on) and bridge coefficients of the 50-level grid:
+    """Noise levels, score times (base prior inflation) and bridge coefficients of the default grid:
     the float32 values csf_jax's ancestral sampler uses, to a few float32 ulps (the two sides
     order the same float32 operations differently)."""
     csf = CSFConfig()
@@ -385,28 +390,97 @@ def test_kalman_pieces_match():
 def test_ancestral_filter_matches_with_injected_noise(name, config_name, csf, num_steps, tol):
     """``csf_jax.filter`` with the default sampler (Kalman guidance, K = 8 proposals, prior
     inflation) against the torch port fed the same draws, float32: the same particles after one and
-    several filter steps (measured 1.6e-5 and 2.5e-5 relative to the scale). Short grids: over the
-    default 50 levels the sampler amplifies rounding too much for float32 (see the float64 test)."""
+    several filter steps (measured 6e-6 and 6e-6 relative to the scale with the default config of
+    2026-11-23: one Gauss-Newton iteration, adaptive inflation). Short grids: over many levels the
+    sampler amplifies float32 rounding (see the float64 test)."""
     errors = _ancestral_errors(name, config_name, csf, num_steps, np.float32)
     assert np.all(errors <= tol), errors
 
 
 @pytest.mark.parametrize("name, config_name, csf, num_steps, tol", [
-    ("double_well", "small", CSFConfig(), 2, 1e-4),
+    ("double_well", "small", CSFConfig(), 2, 1e-10),
     ("cubic10_corr", "default", CSFConfig(reverse_steps=10), 3, 1e-9),
-    ("cubic10_corr", "default", CSFConfig(), 1, 1e-4),
+    ("cubic10_corr", "default", CSFConfig(), 1, 1e-10),
+    ("cubic10_corr", "default", CSFConfig(reverse_steps=50, guidance=GuidanceConfig(iterations=2),
+                                          adaptive_inflation=False, prior_inflation=0.5), 1, 1e-4),
 ])
 def test_ancestral_filter_matches_in_float64(x64, name, config_name, csf, num_steps, tol):
-    """The same in float64 on both sides, at the default L = 50. The sampler amplifies rounding
-    enormously: in csf_jax itself a relative perturbation of 1e-7 of the initial ensemble moves
-    single cubic-sensor particles by O(0.1-1) after one default filter step (the Fisher scoring
-    of ``x^3``, warm-started from the previous level, and the resampling pick switch on
-    rounding-level differences), and float64 differences of 1e-16 grow to 1e-5 there. Measured
-    (the suite's XLA flags, conftest.py; the figures move with XLA's operation order): double well
-    6e-11, 2e-5 (7e-8 at XLA's default optimisation level; a third step: 8e-4); cubic L = 10:
-    1e-12 per step; cubic L = 50, one step: 1e-5. A wrong formula moves particles by O(1)."""
+    """The same in float64 on both sides: the default config (L = 20, one Gauss-Newton iteration,
+    adaptive inflation), L = 10, and the previous default (L = 50, two iterations, fixed 0.5). The
+    sampler can amplify rounding enormously: with the previous default a relative perturbation of
+    1e-7 of the initial ensemble moved single cubic-sensor particles by O(0.1-1) after one filter
+    step (the Fisher scoring of ``x^3`` and the resampling pick switch on rounding-level
+    differences), and float64 differences of 1e-16 grew to 1e-5 there. Measured (the suite's XLA
+    flags, conftest.py; the figures move with XLA's operation order): default config, double well
+    3e-14 and 4e-13 over two steps, cubic 4e-13; cubic L = 10: 1e-12 per step; previous default,
+    cubic, one step: 1e-5. A wrong formula moves particles by O(1)."""
     errors = _ancestral_errors(name, config_name, csf, num_steps, np.float64)
     assert np.all(errors <= tol), errors
+
+
+@pytest.mark.parametrize("statistic", ["median", "chi2"])
+def test_adaptive_inflation_matches(statistic):
+    """``tc.adaptive_inflation`` against ``csf_jax.inflation.adaptive_inflation`` (base 0.2) on the
+    cubic, Cauchy and double-well sensors: an observation near the ensemble (tau stays 0.2 or
+    moves little) and one after a shock (tau jumps): the same tau to float32 rounding."""
+    rng = np.random.default_rng(11)
+    settings = tc.AdaptiveInflation(2.0, 10.0, statistic)
+    for name in ("cubic10_corr", "cauchy", "double_well"):
+        model, tp = problems.get(name), tc.torch_problem(name)
+        ens = _ensemble(200, d=model.dim, scale=0.4, shift=0.5)
+        taus = []
+        for shift in (0.5, 2.0):
+            y = _obs(model.obs_dim, seed=int(rng.integers(100)), shift=shift, scale=0.4)
+            want = adaptive_inflation(jnp.asarray(ens), jnp.asarray(y), model, 0.2, 2.0, 10.0,
+                                      statistic=statistic)
+            got = tc.adaptive_inflation(tp, _t(ens), _t(y), 0.2, settings)
+            _close(got, want, 1e-5)
+            taus.append(float(want))
+        assert taus[1] > 1.0 > 0.2 <= taus[0], (name, taus)
+
+
+@pytest.mark.parametrize("name, statistic, obs_shift", [
+    ("cubic10_corr", "median", 0.5), ("cubic10_corr", "median", 2.0),
+    ("cauchy", "median", 2.0), ("double_well", "chi2", -2.0)])
+def test_adaptive_filter_matches_in_float64(x64, name, statistic, obs_shift):
+    """The default sampler with the adaptive inflation (the default), float64, L = 10, two filter
+    steps, the torch port fed csf_jax's draws: the same particles, with observations near the
+    ensemble and after a shock (obs_shift 2 and -2: the inflation triggers, tau 1.5-5 at the first
+    step)."""
+    csf = CSFConfig(reverse_steps=10, adaptive_inflation=True, inflation_statistic=statistic)
+    config_name = "small" if name == "double_well" else "default"
+    errors = _ancestral_errors(name, config_name, csf, 2, np.float64, obs_shift=obs_shift)
+    assert np.all(errors <= 1e-6), errors
+
+
+def test_encoder_subset_matches_in_float64(x64):
+    """N = 300 > the default ``encode_particles=256``: both sides encode the first 256 particles
+    of the prior ensemble (an encoder of all 300 on one side moves the code, and every particle)."""
+    assert CSFConfig().encode_particles == 256
+    errors = _ancestral_errors("double_well", "small", CSFConfig(), 2, np.float64, n=300)
+    assert np.all(errors <= 1e-10), errors
+
+
+def test_adaptive_em_filter_matches():
+    """The Euler-Maruyama sampler (clipped DPS) with the adaptive inflation, after a shock: the
+    torch port fed csf_jax's draws gives the same particles (the score times move with tau)."""
+    name, n, L = "cubic10_corr", 48, 6
+    csf = CSFConfig(reverse_steps=L, guidance=CLIPPED, adaptive_inflation=True)
+    model, tp = problems.get(name), tc.torch_problem(name)
+    config, params, tnets = _weights("small")
+    ens, y = _ensemble(n, scale=0.4), _obs(D, seed=3, shift=2.0, scale=0.4)
+    assert float(adaptive_inflation(jnp.asarray(ens), jnp.asarray(y), model, 0.2,
+                                    statistic="median")) > 1.0
+    key = jax.random.key(8)
+    want = csf_jax.filter(params, y[None], ens, problem=model, key=key, config=csf, network=config,
+                          return_ensembles=True).ensembles[0]
+    k_prop, k_init, k_rev = jax.random.split(jax.random.split(key, 1)[0], 3)
+    eps = jnp.stack([jax.random.normal(jax.random.fold_in(k_rev, l), ens.shape) for l in range(L)])
+    noise = tc.StepNoise(_t(jax.random.normal(k_prop, ens.shape)),
+                         _t(jax.random.normal(k_init, ens.shape)), _t(eps))
+    got = tc.filter_step(tnets, tp, tc.make_reverse_step(tnets, tp, csf), tc.schedule(csf),
+                         _t(ens), _t(y), torch.tensor(1.0), noise)
+    _close(got, want, 1e-4)
 
 
 @pytest.mark.slow

@@ -54,9 +54,9 @@ class SFConfig:
 
 
 @functools.partial(jax.jit, static_argnames=("model", "config", "sampler", "return_ensembles",
-                                             "progress"))
+                                             "progress", "shards"))
 def _sf_scan(obs, ensemble, key, *, model: StateSpaceModel, config: SFConfig, sampler: CSFConfig,
-             return_ensembles: bool, progress) -> FilterResult:
+             return_ensembles: bool, progress, shards: int = 1) -> FilterResult:
     net = config.network
     if net.sigma_max != sampler.sigma_max:
         raise ValueError(f"SFConfig.network.sigma_max ({net.sigma_max}) must equal the sampler's "
@@ -72,7 +72,7 @@ def _sf_scan(obs, ensemble, key, *, model: StateSpaceModel, config: SFConfig, sa
     if config.warmup_steps:
         score_vars, opt_state, _ = dsm_fit(k_warm, ensemble, score_vars, opt_state, optimizer,
                                            config=net, steps=config.warmup_steps,
-                                           batch=config.batch, t_min=sampler.t_min)
+                                           batch=config.batch, t_min=sampler.t_min, shards=shards)
 
     def filter_step(carry, inputs):
         ens, sv, o = carry
@@ -83,7 +83,8 @@ def _sf_scan(obs, ensemble, key, *, model: StateSpaceModel, config: SFConfig, sa
         centers = jax.vmap(model.drift)(ens)
         prior_ens = centers + model.process_std * jax.random.normal(k_prop, ens.shape, ens.dtype)
         sv, o, losses = dsm_fit(k_fit, prior_ens, sv, o, optimizer, config=net,
-                                steps=config.train_steps, batch=config.batch, t_min=sampler.t_min)
+                                steps=config.train_steps, batch=config.batch, t_min=sampler.t_min,
+                                shards=shards)
         full = {"encoder": None, "score": sv}
         context = prior.condition(full, centers, prior_ens, model.process_std)
         guide = jnp.where((k > 0) | sampler.assimilate_first, 1.0, 0.0).astype(ens.dtype)
@@ -101,7 +102,8 @@ def _sf_scan(obs, ensemble, key, *, model: StateSpaceModel, config: SFConfig, sa
 def score_filter(obs, ensemble, *, problem: StateSpaceModel, key, config: SFConfig = SFConfig(),
                  sampler: CSFConfig = CSFConfig(), return_ensembles: bool = False,
                  check_finite: bool = True,
-                 progress: Optional[Callable[[jax.Array], None]] = None) -> FilterResult:
+                 progress: Optional[Callable[[jax.Array], None]] = None,
+                 shards: int = 1) -> FilterResult:
     """Filter ``obs`` with the score-based filter (a score net trained online at every step).
 
     Args:
@@ -116,6 +118,10 @@ def score_filter(obs, ensemble, *, problem: StateSpaceModel, key, config: SFConf
       check_finite: when called outside jit/vmap, raise FloatingPointError if the filter diverged.
       progress: optional host callback ``k -> None`` called at the start of every filter step
         (``jax.debug.callback``; once per step under ``vmap``).
+      shards: split each training batch over this many local devices (``dsm_fit``; it must divide
+        ``config.batch``): the same filter up to float summation order, one run on several
+        devices (on a CPU with one XLA host device per core, ``experiments.run`` does this for a
+        single SF run).
 
     Returns:
       ``FilterResult`` with mean and std (K, d) and ``finite`` (K,). Works under ``jax.jit`` and
@@ -125,9 +131,14 @@ def score_filter(obs, ensemble, *, problem: StateSpaceModel, key, config: SFConf
     _checks.check_filter_inputs(obs, ensemble, problem, name="score_filter")
     _checks.check_key(key, name="score_filter")
     obs, ensemble = _checks.promote(obs, ensemble)
+    if isinstance(shards, bool) or not isinstance(shards, int) or shards < 1 \
+            or config.batch % shards or shards > jax.local_device_count():
+        raise ValueError(f"score_filter: shards must be a positive int dividing SFConfig.batch "
+                         f"({config.batch}) and at most the {jax.local_device_count()} local "
+                         f"devices, got {shards!r}")
     result = mark_nonfinite(_sf_scan(obs, ensemble, key, model=problem, config=config,
                                      sampler=sampler, return_ensembles=return_ensembles,
-                                     progress=progress), obs)
+                                     progress=progress, shards=shards), obs)
     if check_finite:
         _checks.check_result_finite("score_filter", result)
     return result
