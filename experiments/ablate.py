@@ -5,7 +5,8 @@
         [--out docs/ablation/cubic10_indep.json]
 
 Each ``--setting`` is a comma-separated list of ``CSFConfig`` fields (``field=value``, values read as
-Python literals; ``guidance.proposals=4`` sets a ``GuidanceConfig`` field); the pretrained prior of the problem, N = 1000 and the runs of
+Python literals; ``guidance.proposals=4`` sets a ``GuidanceConfig`` field; on top of ``CSFConfig()``,
+not of the tables' per-problem ``experiments.run.CSF_OVERRIDES``); the pretrained prior of the problem, N = 1000 and the runs of
 ``experiments.run`` (seed 0: run i is the table's run i) are shared. EnKF on the same runs is the
 first row. Prints a markdown table (RMSE over the runs, per run, seconds per filter step, measured
 one run at a time after compilation) and appends the rows to ``--out`` (JSON, one object per row),
