@@ -459,7 +459,8 @@ def main(argv=None):
     print(f"{args.problem}: {runs} runs, N={particles}, L={steps} ({args.guidance}), methods {', '.join(methods)}; "
           f"SF budget {sf.train_steps} Adam steps x {sf.batch} per filter step "
           f"(+{sf.warmup_steps} warm-up)"
-          + "".join(f"; {k}={v} (CSF_OVERRIDES)" for k, v in CSF_OVERRIDES.get(args.problem, {}).items()),
+          + "".join(f"; {k}={v} (CSF_OVERRIDES)"
+                    for k, v in CSF_OVERRIDES.get(args.problem, {}).items()),
           file=sys.stderr)
     results = run(args.problem, methods, runs, particles, steps, args.seed,
                   num_steps=q.get("num_steps"), prior=args.prior, out=args.out, batch=args.batch,

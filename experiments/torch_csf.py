@@ -53,8 +53,7 @@ from torch import nn
 from csf_jax.filters.csf import CSFConfig
 from csf_jax.guidance import GuidanceConfig
 from csf_jax.networks import NetworkConfig, fourier_frequencies
-from csf_jax import problems
-from csf_jax.problems import CubicConfig, WellConfig
+from csf_jax.problems import CubicConfig, WellConfig, build
 from csf_jax.problems import config as problem_config
 from csf_jax.problems.cubic import coupling_matrix
 from csf_jax.sde import marginal_std_host
@@ -495,7 +494,7 @@ def _cubic_sensor(kind: str, scale: float) -> CubicSensor:
 
 def _gaussian_std(c: CubicConfig) -> float:
     """``ObservationNoise.gaussian_std`` of the csf_jax problem (Cauchy: a derived constant)."""
-    return float(problems.build(c).obs_noise.gaussian_std)
+    return float(build(c).obs_noise.gaussian_std)
 
 
 def _cubic(c: CubicConfig) -> TorchProblem:
