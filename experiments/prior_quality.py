@@ -31,7 +31,10 @@ from csf_jax.training import generate, load
 from csf_jax.training.single import fit_unconditional
 from experiments._cli import nonnegative_int, positive_int
 
-PRIOR_ONLY = CSFConfig(guidance=GuidanceConfig(mode="none"))
+# The model's own prior: Euler-Maruyama without guidance or inflation, L = 500, pinned (not the
+# filter's defaults, which have moved since the README's figures were made with these settings).
+PRIOR_ONLY = CSFConfig(reverse_steps=500, guidance=GuidanceConfig(mode="none"), prior_inflation=0.0,
+                       adaptive_inflation=False)
 
 
 def compare(samples, ensemble):
