@@ -8,16 +8,19 @@ Entry points:
   ``csf_jax.load_pretrained(name)``: the shipped trained prior of a problem.
   ``csf_jax.score_filter``: the SF baseline (a score net trained online at every step).
   ``csf_jax.particle_filter`` / ``csf_jax.ensemble_kalman_filter`` / ``csf_jax.kalman_filter``.
+  ``csf_jax.reference_filter``: the near-exact per-coordinate filter of the tables' reference row.
+  ``csf_jax.gaussian_prior()``: CSF's prior as the ensemble's own Gaussian (``filter(..., prior=)``).
 """
 
 from csf_jax import metrics, problems
-from csf_jax.filters import (CSFConfig, FilterResult, SFConfig, ensemble_kalman_filter,
-                             kalman_filter, particle_filter, score_filter)
+from csf_jax.filters import (CSFConfig, FilterResult, ReferenceConfig, SFConfig,
+                             ensemble_kalman_filter, kalman_filter, particle_filter,
+                             reference_filter, score_filter)
 from csf_jax.filters.csf import csf_filter as filter  # noqa: A001  (the user-facing name)
 from csf_jax.guidance import GuidanceConfig
 from csf_jax.metrics import rmse
 from csf_jax.networks import NetworkConfig, init_params
-from csf_jax.prior import PriorScore, exact_mixture_prior, learned_prior
+from csf_jax.prior import PriorScore, exact_mixture_prior, gaussian_prior, learned_prior
 from csf_jax.pretrained import load_pretrained
 from csf_jax.trained import Pretrained
 from csf_jax.ssm import (ObservationNoise, StateSpaceModel, cauchy_noise, gaussian_noise,
@@ -26,7 +29,7 @@ from csf_jax.ssm import (ObservationNoise, StateSpaceModel, cauchy_noise, gaussi
 __version__ = "0.1.0"
 
 __all__ = ["CSFConfig", "FilterResult", "GuidanceConfig", "NetworkConfig", "ObservationNoise",
-           "Pretrained", "PriorScore", "SFConfig", "StateSpaceModel", "cauchy_noise", "ensemble_kalman_filter",
-           "exact_mixture_prior", "filter", "gaussian_noise", "init_params", "kalman_filter",
+           "Pretrained", "PriorScore", "ReferenceConfig", "SFConfig", "StateSpaceModel", "cauchy_noise", "ensemble_kalman_filter",
+           "exact_mixture_prior", "filter", "gaussian_noise", "gaussian_prior", "init_params", "kalman_filter",
            "learned_prior", "load_pretrained", "log_likelihood", "metrics", "particle_filter", "problems",
-           "propagate", "rmse", "score_filter", "shock_steps", "simulate"]
+           "propagate", "reference_filter", "rmse", "score_filter", "shock_steps", "simulate"]

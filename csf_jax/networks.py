@@ -36,6 +36,9 @@ _POSITIVE_INT_FIELDS = (
 )
 
 
+BASES = ("none", "gaussian")
+
+
 @dataclasses.dataclass(frozen=True)
 class NetworkConfig:
     """Hyper-parameters of the set encoder and the conditional score network."""
@@ -66,7 +69,16 @@ class NetworkConfig:
     aliased hash of t, while scale 1 keeps it smooth and multi-scale.
     """
 
+    base: str = "none"
+    """What the score net's output is added to. "none": the net is the whole score (the paper's
+    ``s(x, t; c)``). "gaussian": the score is the ensemble's Gaussian score
+    ``-(C + sigma_t^2 I)^{-1} (x - m)`` plus a learned correction, the net fed the standardised
+    ``z = (x - m) / sqrt(diag C + sigma_t^2)`` (``csf_jax.prior.learned_prior``); a net that
+    outputs zero is the ensemble's Gaussian, and its output layer starts at zero."""
+
     def __post_init__(self):
+        if self.base not in BASES:
+            raise ValueError(f"NetworkConfig.base must be one of {BASES}, got {self.base!r}")
         for name in _POSITIVE_INT_FIELDS:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
@@ -218,7 +230,9 @@ class ScoreNet(nn.Module):
             h = h + nn.Dense(cfg.score_hidden, name=f"residual{i}")(nn.silu(h))
         out = nn.Dense(
             x.shape[-1],
-            kernel_init=nn.initializers.variance_scaling(1e-2, "fan_in", "truncated_normal"),
+            # a Gaussian-base net starts as the ensemble's Gaussian exactly: zero correction
+            kernel_init=nn.initializers.zeros if cfg.base == "gaussian" else
+            nn.initializers.variance_scaling(1e-2, "fan_in", "truncated_normal"),
             name="out",
         )(nn.silu(h))
         return out / sigma[..., None]

@@ -5,6 +5,9 @@ every reverse step. Two sources:
 
 * ``learned_prior(network_config)``: CSF proper. The set encoder turns the prior ensemble into a code
   ``c`` (once per filter step), the conditional score net gives ``s(x, t; c)``.
+* ``gaussian_prior()``: no training. The Gaussian with the propagated ensemble's mean and covariance,
+  diffused in closed form: what an ensemble Kalman filter assumes, and the worst case a prior built
+  on it should reach.
 * ``exact_mixture_prior()``: no training. Given the previous posterior ensemble ``x_i``, the prior is
   exactly the Gaussian mixture ``(1/N) sum_i N(f(x_i), q^2 I)``; under the VE SDE its marginal at time
   t is ``(1/N) sum_i N(f(x_i), (q^2 + sigma_t^2) I)``, whose score is closed form. It separates the
@@ -14,7 +17,7 @@ every reverse step. Two sources:
 from __future__ import annotations
 
 import functools
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -70,16 +73,87 @@ def exact_mixture_prior(sigma_max: float = 25.0) -> PriorScore:
     return PriorScore("exact_mixture", condition, score)
 
 
+class GaussianContext(NamedTuple):
+    """Mean ``(d,)`` and covariance ``(d, d)`` of the propagated ensemble."""
+
+    mean: jax.Array
+    cov: jax.Array
+
+
+def ensemble_moments(ensemble, jitter: float = 1e-6) -> GaussianContext:
+    """Mean and sample covariance of ``ensemble (N, d)``; ``jitter`` times the mean variance (plus a
+    tiny absolute floor) on the diagonal keeps a collapsed ensemble's covariance positive definite."""
+    n, d = ensemble.shape
+    mean = ensemble.mean(0)
+    centred = ensemble - mean
+    cov = centred.T @ centred / max(n - 1, 1)
+    floor = jitter * jnp.trace(cov) / d + jnp.finfo(ensemble.dtype).tiny ** 0.5
+    return GaussianContext(mean, cov + floor * jnp.eye(d, dtype=ensemble.dtype))
+
+
+def gaussian_score(x, ctx: GaussianContext, sigma):
+    """Score of ``N(mean, cov + sigma^2 I)`` at ``x (N, d)``: ``-(cov + sigma^2 I)^{-1} (x - mean)``."""
+    d = ctx.mean.shape[-1]
+    chol = _linalg.cholesky(ctx.cov + sigma ** 2 * jnp.eye(d, dtype=x.dtype))
+    return -_linalg.cho_solve(chol[None], x - ctx.mean)
+
+
 @functools.lru_cache(maxsize=None)
-def learned_prior(config: networks.NetworkConfig = networks.NetworkConfig()) -> PriorScore:
-    """The conditional score net ``s(x, t; c)`` with ``c`` the set encoder's code of the ensemble."""
+def gaussian_prior(sigma_max: float = 25.0) -> PriorScore:
+    """The ensemble's own Gaussian, VE-diffused: score ``-(C + sigma_t^2 I)^{-1} (x - m)``."""
+
+    def condition(params, centers, ensemble, process_std):
+        del params, centers, process_std
+        return ensemble_moments(ensemble)
+
+    def score(params, ctx, x, t):
+        del params
+        return gaussian_score(x, ctx, marginal_std(t, sigma_max))
+
+    return PriorScore("gaussian", condition, score)
+
+
+class ResidualContext(NamedTuple):
+    """The learned prior's context with a Gaussian base: the code ``(C,)`` and the moments."""
+
+    code: jax.Array
+    moments: GaussianContext
+
+
+def residual_score(params, config: networks.NetworkConfig, ctx: ResidualContext, x, t):
+    """Gaussian score of the ensemble plus the net's correction at standardised coordinates.
+
+    ``x: (N, d)``; the net sees ``z = (x - m) / s`` with ``s = sqrt(diag C + sigma_t^2)`` and its
+    output (a score, ``out / sigma_t``) is rescaled to ``out / s``: the correction is measured in
+    units of the diffused ensemble's spread, wherever the ensemble sits.
+    """
+    sigma = marginal_std(t, config.sigma_max)
+    spread = jnp.sqrt(jnp.diagonal(ctx.moments.cov) + sigma ** 2)
+    z = (x - ctx.moments.mean) / spread
+    correction = networks.score(params, z, t, ctx.code, config) * (sigma / spread)
+    return gaussian_score(x, ctx.moments, sigma) + correction
+
+
+@functools.lru_cache(maxsize=None)
+def learned_prior(config: networks.NetworkConfig = networks.NetworkConfig(),
+                  encode_particles: Optional[int] = None) -> PriorScore:
+    """The conditional score net ``s(x, t; c)`` with ``c`` the set encoder's code of the ensemble.
+
+    encode_particles: the encoder sees the first n particles of the ensemble (None: all); with
+    ``config.base == "gaussian"`` the moments of the base come from all of them.
+    """
 
     def condition(params, centers, ensemble, process_std):
         del centers, process_std
-        return networks.encode(params, ensemble, config)
+        code = networks.encode(params, ensemble[:encode_particles], config)
+        if config.base == "gaussian":
+            return ResidualContext(code, ensemble_moments(ensemble))
+        return code
 
-    def score(params, code, x, t):
-        return networks.score(params, x, t, code, config)
+    def score(params, ctx, x, t):
+        if config.base == "gaussian":
+            return residual_score(params, config, ctx, x, t)
+        return networks.score(params, x, t, ctx, config)
 
     return PriorScore("learned", condition, score)
 

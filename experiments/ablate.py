@@ -29,9 +29,10 @@ import numpy as np
 
 import csf_jax
 from csf_jax import CSFConfig, GuidanceConfig, problems
-from csf_jax.pretrained import load_pretrained
+from csf_jax.pretrained import load_dir, load_pretrained
+from csf_jax.prior import gaussian_prior
 from experiments._cli import positive_int
-from experiments.run import _errors, machine, simulate_runs
+from experiments.run import PRIORS, _errors, machine, simulate_runs
 
 
 def make_config(setting: dict) -> CSFConfig:
@@ -64,11 +65,18 @@ def parse_setting(text: str) -> dict:
     return out
 
 
-def ablate(name: str, runs: int, settings, particles: int = 1000, seed: int = 0):
+
+
+def ablate(name: str, runs: int, settings, particles: int = 1000, seed: int = 0,
+           prior: str = "pretrained", model_dir: str | None = None):
     """Rows ``{"setting", "rmse", "rmse_per_run", "seconds_per_step"}``: EnKF first, then CSF per
-    setting."""
+    setting. ``prior``: the shipped model, the ensemble's Gaussian (``csf_jax.prior.gaussian_prior``)
+    or the exact mixture. ``model_dir``: a trained model's folder (``experiments.train --export``)
+    in place of the shipped one."""
     model = problems.get(name)
-    trained = load_pretrained(name)
+    trained = None
+    if prior == "pretrained":
+        trained = load_dir(model_dir) if model_dir else load_pretrained(name)
     truth, obs, _, ens, keys = simulate_runs(model, runs, particles, seed)
     truth = np.asarray(truth)
     K = obs.shape[1]
@@ -89,12 +97,15 @@ def ablate(name: str, runs: int, settings, particles: int = 1000, seed: int = 0)
     print(table(rows[-1:], header=True), flush=True)
     for setting in settings:
         cfg = make_config(setting)
+        source = gaussian_prior(cfg.sigma_max) if prior == "gaussian" else None
         fn = jax.jit(lambda o, e, k: csf_jax.filter(trained, o, e, problem=model, key=k, config=cfg,
-                                                    check_finite=False).mean)
+                                                    prior=source, check_finite=False).mean)
         compiled = fn.lower(obs[0], ens[0], keys[0]).compile()
         t0 = time.perf_counter()
         means = [np.asarray(compiled(obs[i], ens[i], keys[i])) for i in range(runs)]
-        rows.append(row("CSF " + (", ".join(f"{k}={v}" for k, v in setting.items()) or "default"),
+        label = ("CSF " if prior == "pretrained" else f"CSF ({prior} prior) ") + (
+            f"[{model_dir}] " if model_dir and prior == "pretrained" else "")
+        rows.append(row(label + (", ".join(f"{k}={v}" for k, v in setting.items()) or "default"),
                         means, time.perf_counter() - t0, cfg))
         print(table(rows[-1:]), flush=True)
     return rows
@@ -134,6 +145,12 @@ def main(argv=None):
     p.add_argument("--setting", type=parse_setting, action="append", default=None,
                    help="CSFConfig fields, e.g. reverse_steps=20,prior_inflation=0.2 (repeatable; "
                         "none: the default config)")
+    p.add_argument("--prior", choices=PRIORS, default="pretrained",
+                   help="CSF's prior: the shipped model (default), the ensemble's Gaussian, or the "
+                        "exact Gaussian mixture")
+    p.add_argument("--model", default=None,
+                   help="a trained model's folder (experiments.train --export) instead of the "
+                        "shipped prior")
     p.add_argument("--out", default=None, help="JSON file the rows are appended to")
     p.add_argument("--render", default=None, help="print the table of this JSON file and stop")
     args = p.parse_args(argv)
@@ -142,7 +159,8 @@ def main(argv=None):
         return
     if args.problem is None:
         p.error("the problem is required (or --render JSON)")
-    rows = ablate(args.problem, args.runs, args.setting or [{}])
+    rows = ablate(args.problem, args.runs, args.setting or [{}], prior=args.prior,
+                  model_dir=args.model)
     if args.out:
         os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
         old = json.load(open(args.out)) if os.path.exists(args.out) else {"rows": []}

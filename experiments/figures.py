@@ -24,8 +24,10 @@ from csf_jax.filters.csf import _prior_for  # noqa: E402
 from csf_jax.sde import marginal_std  # noqa: E402
 from csf_jax.ssm import propagate  # noqa: E402
 
-COLORS = {"csf": "tab:red", "sf": "tab:blue", "enkf": "tab:green", "pf": "tab:purple"}
-LABELS = {"csf": "CSF", "sf": "SF", "enkf": "EnKF", "pf": "PF"}
+COLORS = {"csf": "tab:red", "sf": "tab:blue", "enkf": "tab:green", "pf": "tab:purple",
+          "reference": "black", "csf_gaussian": "tab:orange"}
+LABELS = {"csf": "CSF", "csf_gaussian": "CSF, Gaussian prior", "sf": "SF", "enkf": "EnKF",
+          "pf": "PF", "reference": "reference"}
 
 
 def plotted_dims(dim: int) -> list[int]:
@@ -89,14 +91,13 @@ def prior_vs_model(out: str, name: str, model, pretrained, config, ensemble0, ke
     params = None if pretrained is None else pretrained.params
     network = None if pretrained is None else pretrained.network
     _, obs = csf_jax.simulate(model, key)
-    prior = _prior_for(params, None, network, config.sigma_max)
+    prior = _prior_for(params, None, network, config.sigma_max, config.encode_particles)
     result = csf_jax.filter(params, obs[:k], ensemble0, problem=model, key=k_filt, config=config,
                             network=network, return_ensembles=True)
     post = result.ensembles[-1]
     prior_ens = propagate(model, k_prop, post)
     centers = jax.vmap(model.drift)(post)
-    context = prior.condition(params, centers, prior_ens[:config.encode_particles],
-                              model.process_std)
+    context = prior.condition(params, centers, prior_ens, model.process_std)
     x_init = marginal_std(1.0, config.sigma_max) * jax.random.normal(k_init, prior_ens.shape)
     # the model's own prior: no inflation, no guidance
     generated = posterior_sample(params, prior, context, lambda x0: 0.0, x_init, k_rev,

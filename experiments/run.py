@@ -1,8 +1,9 @@
-"""The main job: run CSF, SF, EnKF and PF on one of the paper's problems (paper Sec. 3).
+"""The main job: run CSF, SF, EnKF and PF, and the near-exact reference, on one of the paper's
+problems (paper Sec. 3).
 
-    python -m experiments.run double_well [--methods csf,sf,enkf,pf] [--runs 10] [--particles 1000]
+    python -m experiments.run double_well [--methods csf,sf,enkf,pf,reference] [--runs 10] [--particles 1000]
         [--steps 50] [--guidance kalman] [--seed 0] [--out DIR] [--batch B]
-        [--prior pretrained|exact] [--quick]
+        [--prior pretrained|exact|gaussian] [--quick]
 
 Simulates ``--runs`` independent truth/observation trajectories (run i uses the key
 ``fold_in(key(seed), i)``, so a run does not depend on how many others there are), runs every method
@@ -11,8 +12,12 @@ RMSE before and after the first shock, seconds per filter step per run (the wall
 runs over runs x filter steps, compile time apart; "at once" says how many runs shared that time).
 
 CSF uses the shipped pretrained prior (``csf_jax.load_pretrained``; triple_well uses the double-well
-model: the paper's transfer experiment); ``--prior exact`` uses the exact Gaussian-mixture prior.
+model: the paper's transfer experiment); ``--prior exact`` uses the exact Gaussian-mixture prior,
+``--prior gaussian`` the Gaussian with the propagated ensemble's mean and covariance.
 SF trains its score net online (``csf_jax.SFConfig``: the per-step budget is printed).
+The reference (``csf_jax.filters.reference``: 20000 particles per coordinate, shocks modelled,
+started from the model's initial law) is the best achievable on these problems; the table's
+"RMSE / reference" column is each method's RMSE over its RMSE on the same runs.
 
 ``--out DIR`` writes ``results.json`` and PNG figures (matplotlib: ``pip install -e '.[plots]'``), and
 caches every finished run under ``DIR/cache``: an interrupted job, run again with the same
@@ -62,13 +67,23 @@ import numpy as np  # noqa: E402
 import csf_jax  # noqa: E402
 from csf_jax import CSFConfig, GuidanceConfig, SFConfig, problems  # noqa: E402
 from csf_jax.guidance import MODES  # noqa: E402
+from csf_jax.filters.reference import ReferenceConfig, reference_filter  # noqa: E402
 from csf_jax.pretrained import load_pretrained  # noqa: E402
+from csf_jax.prior import gaussian_prior  # noqa: E402
 from experiments._cli import name_list, nonnegative_int, particle_count, positive_int  # noqa: E402
 
-METHODS = ("csf", "sf", "enkf", "pf")
-LABELS = {"csf": "CSF", "sf": "SF", "enkf": "EnKF", "pf": "PF"}
+METHODS = ("csf", "csf_gaussian", "sf", "enkf", "pf", "reference")
+LABELS = {"csf": "CSF", "csf_gaussian": "CSF-G", "sf": "SF", "enkf": "EnKF", "pf": "PF",
+          "reference": "Ref."}
+# csf_gaussian: CSF's sampler with the ensemble's own Gaussian as the prior (csf_jax.gaussian_prior,
+# no network, all N particles for the moments): the worst case issue 11 asks of a learned prior.
+# The near-exact reference filter (csf_jax.filters.reference) of the tables: M particles per
+# coordinate, shocks modelled, started from the model's initial law (not the N-particle ensemble).
+REFERENCE = ReferenceConfig()
+QUICK_REFERENCE = ReferenceConfig(particles=2000, shock_draws=256)
 QUICK = dict(runs=2, particles=100, steps=20, num_steps=10)
 QUICK_SF = SFConfig(train_steps=20, warmup_steps=100)
+PRIORS = ("pretrained", "exact", "gaussian")  # CSF's prior: --prior
 CPU_SF_RUNS = 1  # the CLI's default SF runs on a CPU (module doc)
 # Per-problem CSFConfig fields of the tables (CSF's sampler, shared by SF), on top of the defaults.
 # triple_well is the transfer experiment: it filters with the double-well prior, a wrong model, and
@@ -134,16 +149,26 @@ def simulate_runs(model, runs: int, particles: int, seed: int):
 
 
 def method_fn(method: str, model, config: CSFConfig, sf: SFConfig, pretrained, progress,
-              return_ensembles: bool = False, sf_shards: int = 1):
+              return_ensembles: bool = False, sf_shards: int = 1,
+              reference: ReferenceConfig = REFERENCE, prior=None):
     """``(obs (K, m), ens (N, d), key) -> FilterResult`` for one run of ``method``.
 
     pretrained: a ``csf_jax.pretrained.Pretrained`` for CSF (passed whole: the filter checks it
     was trained for ``model``), or None for the exact mixture prior.
+    prior: CSF's ``PriorScore`` when not the pretrained or exact one (``gaussian_prior()``).
     sf_shards: SF's training batch split over this many local devices (``score_filter``).
+    reference: the reference filter's settings; it draws ``reference.particles`` from the model's
+    initial law (with ``fold_in(key, 1)``) instead of using ``ens``.
     """
     if method == "csf":
         return lambda o, e, k: csf_jax.filter(pretrained, o, e, problem=model, key=k, config=config,
-                                              progress=progress, return_ensembles=return_ensembles)
+                                              prior=prior, progress=progress,
+                                              return_ensembles=return_ensembles)
+    if method == "csf_gaussian":
+        return lambda o, e, k: csf_jax.filter(None, o, e, problem=model, key=k, config=config,
+                                              prior=gaussian_prior(config.sigma_max),
+                                              progress=progress,
+                                              return_ensembles=return_ensembles)
     if method == "sf":
         return lambda o, e, k: csf_jax.score_filter(o, e, problem=model, key=k, config=sf,
                                                     sampler=config, progress=progress,
@@ -153,6 +178,10 @@ def method_fn(method: str, model, config: CSFConfig, sf: SFConfig, pretrained, p
         return lambda o, e, k: csf_jax.ensemble_kalman_filter(o, e, problem=model, key=k)
     if method == "pf":
         return lambda o, e, k: csf_jax.particle_filter(o, e, problem=model, key=k)
+    if method == "reference":
+        return lambda o, e, k: reference_filter(
+            o, model.initial_ensemble(jax.random.fold_in(k, 1), reference.particles).astype(e.dtype),
+            problem=model, key=k, config=reference, check_finite=False)
     raise SystemExit(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
 
 
@@ -273,10 +302,22 @@ def summarize(err, shocks, dim: int) -> dict:
         }
 
 
+def reference_ratios(means: dict, truth) -> dict:
+    """``{method: RMSE / reference RMSE}``, both over the method's runs (the first R_m); ``means``
+    holds ``(R_m, K, d)`` per method, the reference's over all runs."""
+    ref = _errors(means["reference"], truth[:means["reference"].shape[0]])
+    out = {}
+    for m, mean in means.items():
+        r = mean.shape[0]
+        err = _errors(mean, truth[:r])
+        out[m] = float(np.sqrt(err.mean() / ref[:r].mean()))
+    return out
+
+
 def default_batch(method: str, runs: int) -> int:
     """Runs per batch: all for EnKF/PF and on accelerators, else one per local CPU device (see
     the module doc)."""
-    if method in ("enkf", "pf") or jax.default_backend() != "cpu":
+    if method in ("enkf", "pf", "reference") or jax.default_backend() != "cpu":
         return runs
     return max(1, min(runs, jax.local_device_count()))
 
@@ -303,12 +344,14 @@ def run(name: str, methods=METHODS, runs: int = 10, particles: int = 1000,
         steps: int = CSFConfig().reverse_steps, seed: int = 0, num_steps: Optional[int] = None, prior: str = "pretrained",
         out: Optional[str] = None, batch: Optional[int] = None, sf: SFConfig = SFConfig(),
         method_runs: Optional[dict] = None, progress: bool = True, figures: bool = True,
-        guidance: str = GuidanceConfig().mode) -> dict:
+        guidance: str = GuidanceConfig().mode, reference: ReferenceConfig = REFERENCE) -> dict:
     """Simulate ``runs`` trajectories, run ``methods`` on them; returns the results dict (and writes
     ``results.json`` and figures under ``out``).
 
     method_runs: optional ``{method: R_m}`` to run a method on the first ``R_m <= runs`` runs only
     (SF on a CPU budget); its figures then use those runs.
+    reference: the reference filter's settings. With the reference among the methods,
+    ``rmse_ratio[m]`` is method m's RMSE over the reference's on the same runs.
     """
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
@@ -342,10 +385,14 @@ def run(name: str, methods=METHODS, runs: int = 10, particles: int = 1000,
                               "seed": seed, "method": method,
                               "config": {"csf": cfg["csf"], "prior": prior,
                                          "model": cfg["csf_model_id"]} if method == "csf" else
-                              {"sf": cfg["sf"], "csf": cfg["csf"]} if method == "sf" else None})
-        bar = Progress(LABELS[method], r_m * K, enabled=progress and method in ("csf", "sf"))
+                              {"csf": cfg["csf"]} if method == "csf_gaussian" else
+                              {"sf": cfg["sf"], "csf": cfg["csf"]} if method == "sf" else
+                              {"reference": reference._asdict()} if method == "reference" else None})
+        bar = Progress(LABELS[method], r_m * K,
+                       enabled=progress and method in ("csf", "csf_gaussian", "sf"))
         fn = method_fn(method, model, config, sf, pretrained, bar,
-                       sf_shards=sf_shards(r_m, sf) if method == "sf" else 1)
+                       sf_shards=sf_shards(r_m, sf) if method == "sf" else 1, reference=reference,
+                       prior=gaussian_prior(config.sigma_max) if prior == "gaussian" else None)
         b = batch or default_batch(method, r_m)
         mean, seconds, compile_s, at_once = _filter_runs(method, fn, obs[:r_m], ens[:r_m],
                                                          keys[:r_m], b, cache, ident, bar)
@@ -359,6 +406,9 @@ def run(name: str, methods=METHODS, runs: int = 10, particles: int = 1000,
         out_dict["runs_at_once"][method] = at_once
         print(f"  {LABELS[method]:5s} RMSE {summary['rmse']:.3f}  ({seconds:.1f} s for {r_m} runs, "
               f"compile {compile_s:.1f} s)", file=sys.stderr, flush=True)
+    if "reference" in means:
+        out_dict["config"]["reference"] = reference._asdict()
+        out_dict["rmse_ratio"] = reference_ratios(means, truth)
     out_dict["machine"] = machine()
     out_dict["versions"] = versions()
     if out is not None:
@@ -406,11 +456,13 @@ def versions() -> dict:
 
 def table(results: dict) -> str:
     """Markdown table of a results dict."""
-    rows = ["| method | runs | RMSE | RMSE per dim | RMSE before / after 1st shock | "
-            "s / filter step per run (runs at once) | compile s |", "|---|---|---|---|---|---|---|"]
+    ratio = results.get("rmse_ratio", {})
+    rows = ["| method | runs | RMSE | RMSE / reference | RMSE per dim | RMSE before / after 1st shock | "
+            "s / filter step per run (runs at once) | compile s |", "|---|---|---|---|---|---|---|---|"]
     fmt = lambda v: "-" if v is None else f"{v:.3f}"
     for m in results["rmse"]:
         rows.append(f"| {LABELS[m]} | {results['runs_used'][m]} | {results['rmse'][m]:.3f} | "
+                    f"{fmt(ratio.get(m))} | "
                     f"{results['rmse_per_dim'][m]:.3f} | {fmt(results['rmse_before_shock'][m])} / "
                     f"{fmt(results['rmse_after_shock'][m])} | "
                     f"{results['seconds_per_step'][m]:.4f} ({results['runs_at_once'].get(m, 1)}) | "
@@ -436,8 +488,9 @@ def main(argv=None):
     p.add_argument("--batch", type=positive_int, default=None, help="runs per batch (see above)")
     p.add_argument("--sf-runs", type=positive_int, default=None,
                    help="run SF on the first R runs only (default: all; on CPU 2, see above)")
-    p.add_argument("--prior", choices=("pretrained", "exact"), default="pretrained",
-                   help="CSF prior: the shipped model (default) or the exact Gaussian mixture")
+    p.add_argument("--prior", choices=PRIORS, default="pretrained",
+                   help="CSF prior: the shipped model (default), the exact Gaussian mixture, or "
+                        "the ensemble's own Gaussian (no training)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--quick", action="store_true",
                    help="a first look and CI: 2 runs, N=100, L=20, 10 filter steps, SF budget "
@@ -465,7 +518,8 @@ def main(argv=None):
     results = run(args.problem, methods, runs, particles, steps, args.seed,
                   num_steps=q.get("num_steps"), prior=args.prior, out=args.out, batch=args.batch,
                   sf=sf, method_runs=None if sf_runs is None else {"sf": sf_runs},
-                  progress=not args.no_progress, guidance=args.guidance)
+                  progress=not args.no_progress, guidance=args.guidance,
+                  reference=QUICK_REFERENCE if args.quick else REFERENCE)
     print(table(results))
     if args.out:
         print(f"wrote {os.path.join(args.out, 'results.json')}", file=sys.stderr)

@@ -32,6 +32,8 @@ PAPER_RMSE = {  # as printed in the paper
     "sf": ["0.040", "0.176", "0.285", "0.750", "0.667", "0.868", "0.661"],
     "enkf": ["0.474", "0.249", "2.418", "1.481", "1.108", "1.338", "1.178"],
     "pf": ["1.117", "0.317", "1.162", "1.928", "1.489", "2.534", "1.937"],
+    "csf_gaussian": [None] * 7,  # ours only: CSF's sampler with the ensemble's Gaussian prior
+    "reference": [None] * 7,  # ours only: the near-exact per-coordinate filter
 }
 COLUMNS = ["double_well", "triple_well", "cauchy", "cubic10_indep", "cubic10_corr",
            "cubic20_indep", "cubic20_corr"]
@@ -67,30 +69,47 @@ def render(results: dict, command: str) -> str:
     """The generated markdown: RMSE table, per-step time table, shock split, machine."""
     lines = [f"Made by `{command}`.", "",
              "RMSE (Eq. rmse, 10 runs unless marked), ours with the paper's in brackets; bold: the "
-             "best of ours in the column; `-`: not run yet.", "",
+             "best of ours in the column (the reference apart); `-`: not run yet. Ref.: the "
+             "near-exact reference filter (`csf_jax.reference_filter`, shocks modelled; why it "
+             "is near-exact: below the table). CSF-G: CSF's sampler with the ensemble's own "
+             "Gaussian as the prior (`csf_jax.gaussian_prior()`, no network).", "",
              "| method | " + " | ".join(HEADERS) + " |", "|---" * (len(HEADERS) + 1) + "|"]
     best = {}
     for name, res in results.items():
-        best[name] = min(res["rmse"].values()) if res["rmse"] else None
+        ours = [v for m, v in res["rmse"].items() if m != "reference"]
+        best[name] = min(ours) if ours else None
     for m in run_mod.METHODS:
         cells = []
         for j, name in enumerate(COLUMNS):
             res = results.get(name)
+            paper = PAPER_RMSE[m][j]
             if res is None or m not in res["rmse"]:
-                cells.append(f"- ({PAPER_RMSE[m][j]})")
+                cells.append("-" if paper is None else f"- ({paper})")
                 continue
             v = res["rmse"][m]
             text = _num(v)
-            if v == best[name]:
+            if v == best[name] and m != "reference":
                 text = f"**{text}**"
             runs = res["runs_used"][m]
-            note = f", {runs} runs" if runs != res["config"]["runs"] or runs != 10 else ""
-            cells.append(f"{text} ({PAPER_RMSE[m][j]}{note})")
+            note = f"{runs} runs" if runs != res["config"]["runs"] or runs != 10 else ""
+            bracket = ", ".join(x for x in (paper, note) if x)
+            cells.append(f"{text} ({bracket})" if bracket else text)
         lines.append(f"| {run_mod.LABELS[m]} | " + " | ".join(cells) + " |")
     differ = _config_differences(results)
     if differ:
         lines += ["", "CSF (and SF's sampler) settings other than `CSFConfig()`'s, per column "
                   "(`experiments.run.CSF_OVERRIDES`): " + "; ".join(differ) + "."]
+    if any("rmse_ratio" in r for r in results.values()):
+        lines += ["", "RMSE over the reference's RMSE on the same runs (1 is the best achievable):",
+                  "", "| method | " + " | ".join(HEADERS) + " |",
+                  "|---" * (len(HEADERS) + 1) + "|"]
+        for m in run_mod.METHODS:
+            if m == "reference":
+                continue
+            cells = [f"{results[n]['rmse_ratio'][m]:.2f}"
+                     if n in results and m in results[n].get("rmse_ratio", {}) else "-"
+                     for n in COLUMNS]
+            lines.append(f"| {run_mod.LABELS[m]} | " + " | ".join(cells) + " |")
     lines += ["", "RMSE before / after the first shock of each run (where the error comes from):",
               "", "| method | " + " | ".join(HEADERS) + " |", "|---" * (len(HEADERS) + 1) + "|"]
     fmt = lambda v: "-" if v is None else _num(v)
@@ -107,7 +126,7 @@ def render(results: dict, command: str) -> str:
     lines += ["", "Seconds per filter step per run (ours: compile excluded; the paper's: RTX 4090):",
               "", "| method | " + " | ".join(h for h, _, _ in TIME_COLUMNS) + " |",
               "|---" * (len(TIME_COLUMNS) + 1) + "|"]
-    for m in ("csf", "sf", "enkf", "pf"):
+    for m in ("csf", "csf_gaussian", "sf", "enkf", "pf", "reference"):
         cells = []
         for _, paper_key, name in TIME_COLUMNS:
             res = results.get(name)

@@ -395,6 +395,9 @@ def flax_to_torch(params: dict, config: NetworkConfig, dim: Optional[int] = None
       config: the ``NetworkConfig`` the params were built with.
       dim: state dimension d (default: read off the score net's output layer).
     """
+    if config.base != "none":
+        raise ValueError(f"flax_to_torch: the torch port has the paper's network only "
+                         f"(NetworkConfig.base='none'), got base={config.base!r}")
     enc_p, score_p = params["encoder"]["params"], params["score"]["params"]
     dim = int(np.shape(score_p["out"]["kernel"])[-1]) if dim is None else dim
     encoder, score = SetEncoder(config, dim), ScoreNet(config, dim)

@@ -41,6 +41,9 @@ def main(argv=None):
     p.add_argument("--targets", type=positive_int, default=None, help="x0 targets per set")
     p.add_argument("--set-sizes", type=int_list(2), default=None,
                    help="comma-separated encoder subset sizes, each at least 2")
+    p.add_argument("--base", choices=networks.BASES, default=networks.NetworkConfig().base,
+                   help="NetworkConfig.base: 'none' (the net is the whole score) or 'gaussian' "
+                        "(the ensemble's Gaussian score plus a learned correction)")
     p.add_argument("--export", default=None, help="write the trained model here")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
@@ -62,7 +65,7 @@ def main(argv=None):
     data_dir = os.path.join(out, "data")
     generate(args.problem, dcfg, data_dir, verbose=not args.quiet)
     data = load(data_dir)
-    network = networks.NetworkConfig()
+    network = networks.NetworkConfig(base=args.base)
     params, meta = train(args.problem, data, os.path.join(out, "ckpt"), network=network,
                          config=tcfg, verbose=not args.quiet)
     final = meta["valid_loss"][-1] if meta["valid_loss"] else None

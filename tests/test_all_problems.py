@@ -44,6 +44,8 @@ def test_quick_main_job(name, tmp_path, capsys):
         assert len(res["rmse_over_time"][m]) == K
         assert res["rmse"][m] >= res["rmse_per_dim"][m] > 0  # finite, positive
         assert res["seconds_per_step"][m] > 0
+    assert res["rmse_ratio"]["reference"] == 1.0
+    assert res["rmse_ratio"]["pf"] == pytest.approx(res["rmse"]["pf"] / res["rmse"]["reference"])
     model = problems.get(name)
     expected = {"estimates.png", "rmse_over_time.png"} | ({"prior.png"} if model.dim == 1 else set())
     assert expected <= set(os.listdir(tmp_path))

@@ -3,10 +3,12 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from jax.scipy.special import logsumexp
 
 from csf_jax import networks
-from csf_jax.prior import exact_mixture_prior, learned_prior, mixture_score
+from csf_jax.prior import (ensemble_moments, exact_mixture_prior, gaussian_prior, learned_prior,
+                           mixture_score)
 from csf_jax.sde import marginal_std
 
 
@@ -40,6 +42,51 @@ def test_exact_prior_diffuses_with_process_noise(x64):
     var = 0.09 + marginal_std(t) ** 2
     np.testing.assert_allclose(prior.score(None, ctx, x, t), mixture_score(x, centers, var),
                                rtol=1e-12)
+
+
+def test_gaussian_prior_is_the_diffused_ensemble_gaussian(x64):
+    """Score of N(mean, C + sigma_t^2 I) from the ensemble's moments, against autodiff of the
+    log-density, at three noise levels."""
+    ens = jax.random.normal(jax.random.key(0), (400, 3)) @ jnp.array(
+        [[1.0, 0.5, 0.0], [0.0, 0.3, 0.2], [0.0, 0.0, 2.0]]) + jnp.array([1.0, -2.0, 0.5])
+    prior = gaussian_prior()
+    ctx = prior.condition(None, ens * 0.0, ens, 0.1)
+    mean, cov = ens.mean(0), jnp.cov(ens.T)
+    np.testing.assert_allclose(ctx.mean, mean, rtol=1e-12)
+    np.testing.assert_allclose(ctx.cov, cov, rtol=1e-5, atol=1e-6)  # plus the tiny jitter
+    x = jax.random.normal(jax.random.key(1), (5, 3)) * 3.0
+    for t in (0.05, 0.4, 1.0):
+        total = ctx.cov + marginal_std(t) ** 2 * jnp.eye(3)
+        logpdf = lambda p: jax.scipy.stats.multivariate_normal.logpdf(p, mean, total)
+        np.testing.assert_allclose(prior.score(None, ctx, x, t), jax.vmap(jax.grad(logpdf))(x),
+                                   rtol=1e-8, atol=1e-10)
+
+
+def test_gaussian_base_network_with_zero_output_is_the_gaussian_prior():
+    """``NetworkConfig(base="gaussian")``: the score is the ensemble's Gaussian plus the net's
+    correction, so a net whose output layer is zero gives exactly ``gaussian_prior``; the encoder
+    sees the first ``encode_particles`` particles, the moments come from all."""
+    cfg = networks.NetworkConfig(base="gaussian", hidden=16, heads=2, blocks=1, code_dim=8,
+                                 score_hidden=32, score_layers=2)
+    params = networks.init_params(jax.random.key(0), cfg, 3)
+    out = params["score"]["params"]["out"]
+    out["kernel"], out["bias"] = jnp.zeros_like(out["kernel"]), jnp.zeros_like(out["bias"])
+    ens = jax.random.normal(jax.random.key(1), (500, 3)) * jnp.array([1.0, 2.0, 0.5]) + 3.0
+    learned, gauss = learned_prior(cfg, 64), gaussian_prior()
+    ctx = learned.condition(params, None, ens, None)
+    np.testing.assert_allclose(ctx.code, networks.encode(params, ens[:64], cfg), rtol=1e-6)
+    x = jax.random.normal(jax.random.key(2), (7, 3))
+    for t in (0.05, 0.5):
+        np.testing.assert_allclose(learned.score(params, ctx, x, t),
+                                   gauss.score(None, gauss.condition(None, None, ens, None), x, t),
+                                   rtol=1e-6, atol=1e-7)
+    with pytest.raises(ValueError, match="base"):
+        networks.NetworkConfig(base="mixture")
+
+
+def test_ensemble_moments_of_a_collapsed_ensemble_stay_positive_definite():
+    ctx = ensemble_moments(jnp.ones((50, 4)))
+    assert np.all(np.linalg.eigvalsh(np.asarray(ctx.cov)) > 0)
 
 
 def test_learned_prior_encodes_the_noisy_ensemble():

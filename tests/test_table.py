@@ -41,3 +41,20 @@ def test_write_page_replaces_only_the_generated_block(tmp_path):
     (tmp_path / "bad.md").write_text("no markers")
     with pytest.raises(SystemExit, match="markers"):
         table.write_page(str(tmp_path / "bad.md"), "x")
+
+
+def test_render_reference_row_and_ratios():
+    """The reference row carries no paper value and is never bold; the ratio table divides by it."""
+    results = table.load_results(RESULTS)
+    one = {"double_well": copy.deepcopy(results["double_well"])}
+    res = one["double_well"]
+    res["rmse"]["reference"] = 0.001  # below every method: still not the column's bold
+    res["runs_used"]["reference"] = 10
+    res["rmse_ratio"] = {m: v / 0.001 for m, v in res["rmse"].items()}
+    text = table.render(one, "cmd").splitlines()
+    ref = next(line for line in text if line.startswith("| Ref. |"))
+    assert ref.split("|")[2].strip() == "0.0010"
+    head = text.index("RMSE over the reference's RMSE on the same runs (1 is the best achievable):")
+    csf = next(line for line in text[head:] if line.startswith("| CSF |"))
+    assert csf.split("|")[2].strip() == f"{res['rmse']['csf'] / 0.001:.2f}"
+    assert not any(line.startswith("| Ref. |") for line in text[head:head + 12])

@@ -17,6 +17,7 @@ import csf_jax
 from csf_jax import networks, problems
 from csf_jax.pretrained import MODEL_FOR, load_pretrained
 from csf_jax.training import DatasetConfig, TrainConfig, generate, load, train
+from csf_jax.training.data import Dataset
 from csf_jax.training.train import eval_loss, init_state, make_batch
 
 TINY_DATA = DatasetConfig(trajectories=12, particles=200, keep=64, chunk=6)
@@ -69,6 +70,44 @@ def test_small_model_trains_and_loss_falls(tiny_data, tmp_path):
     r = csf_jax.filter(params, obs, ens, problem=model, network=SMALL_NET, key=jax.random.key(2),
                        config=csf_jax.CSFConfig(reverse_steps=20))
     assert bool(jnp.isfinite(r.mean).all())
+
+
+def _bimodal_data() -> Dataset:
+    """Ensembles of two clusters at ``c +- a`` (a in [0.5, 1.5], cluster std 0.1): far from
+    Gaussian, so a learned correction has something to learn."""
+    rng = np.random.default_rng(0)
+    M, S, keep = 20, 10, 64
+    centre = rng.normal(0.0, 2.0, (M, S, 1, 1))
+    half = rng.uniform(0.5, 1.5, (M, S, 1, 1))
+    sign = rng.choice([-1.0, 1.0], (M, S, keep, 1))
+    ens = centre + half * sign + 0.1 * rng.standard_normal((M, S, keep, 1))
+    return Dataset(ens.astype(np.float16), "bimodal", np.arange(16), np.arange(16, 20))
+
+
+def test_gaussian_base_model_trains_and_starts_at_the_gaussian(tmp_path):
+    """A ``base="gaussian"`` network: its batches carry the whole ensembles (the base's moments),
+    its initial loss is the ensemble Gaussian's (zero-init output layer), and on bimodal ensembles
+    training takes the loss well below it. A checkpoint of another base is refused."""
+    data = _bimodal_data()
+    net = dataclasses.replace(SMALL_NET, base="gaussian")
+    cfg = TrainConfig(steps=300, batch_sets=8, targets_per_set=32, set_sizes=(16, 32),
+                      save_every=300, eval_every=100, lr=3e-3)
+    subsets, x0, full = make_batch(data, cfg, 0, full=True)
+    assert subsets.shape[:2] == (8, 16) and full.shape == (8, 64, 1) and x0.shape == (8, 32, 1)
+    valid = make_batch(data, dataclasses.replace(cfg, set_sizes=(32,)), 0, "valid", True)
+    key = jax.random.key(10_000)
+    zero = jax.tree_util.tree_map(jnp.zeros_like, init_state(jax.random.key(0), net, 1, cfg).params)
+    gauss = float(eval_loss(zero, valid[0], valid[1], key, valid[2], network=net, t_min=cfg.t_min))
+    state0 = init_state(jax.random.key(cfg.seed), net, 1, cfg)
+    before = float(eval_loss(state0.params, valid[0], valid[1], key, valid[2], network=net,
+                             t_min=cfg.t_min))
+    assert abs(before - gauss) < 1e-6 * gauss, (before, gauss)
+    params, meta = train("bimodal", data, str(tmp_path / "ckpt"), network=net, config=cfg,
+                         verbose=False)
+    assert meta["valid_loss"][-1][1] < 0.8 * before, (before, meta["valid_loss"])
+    with pytest.raises(ValueError, match="base"):
+        train("bimodal", data, str(tmp_path / "ckpt"), network=SMALL_NET, config=cfg,
+              verbose=False)
 
 
 def test_mismatched_checkpoint_fails_clearly(tiny_data, tmp_path):

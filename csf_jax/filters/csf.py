@@ -75,8 +75,9 @@ class CSFConfig:
     inflation_statistic: "median" (default: a majority of coordinates must be surprised; robust to
       heavy-tailed noise such as Cauchy, where "chi2" reads one outlier as a shock) or "chi2" (the
       innovation's chi-square sum).
-    encode_particles: how many particles of the prior ensemble the set encoder sees (the first n;
-      particles are exchangeable). None: all N. The encoder's self-attention costs O(n^2), and the
+    encode_particles: how many particles of the prior ensemble the set encoder of the default
+      learned prior sees (the first n; particles are exchangeable; ``learned_prior(network, n)``;
+      a ``prior=`` given to the filter brings its own). None: all N. The encoder's self-attention costs O(n^2), and the
       priors were trained on sets of 32-128 particles. Default 256: at N = 1000 the same RMSE as
       all N on the double well and cubic10_indep, +0.7% on Cauchy, and 0.6x the time of a double-well
       step (docs/ablation.md).
@@ -276,12 +277,12 @@ def particle_sampler(model: StateSpaceModel, prior: PriorScore, config: CSFConfi
 
 
 def _prior_for(params, prior: Optional[PriorScore], network: Optional[NetworkConfig],
-               sigma_max: float) -> PriorScore:
+               sigma_max: float, encode_particles: Optional[int] = None) -> PriorScore:
     if prior is not None:
         return prior
     if params is None:
         return exact_mixture_prior(sigma_max)
-    return learned_prior(network if network is not None else NetworkConfig())
+    return learned_prior(network if network is not None else NetworkConfig(), encode_particles)
 
 
 @functools.partial(jax.jit, static_argnames=("model", "prior", "config", "return_ensembles",
@@ -299,8 +300,7 @@ def _csf_scan(params, obs, ensemble, key, *, model: StateSpaceModel, prior: Prio
         k_prop, k_init, k_rev = jax.random.split(key_k, 3)
         centers = jax.vmap(model.drift)(ens)
         prior_ens = centers + model.process_std * jax.random.normal(k_prop, ens.shape, ens.dtype)
-        context = prior.condition(params, centers, prior_ens[:config.encode_particles],
-                                  model.process_std)
+        context = prior.condition(params, centers, prior_ens, model.process_std)
         guide = jnp.where((k > 0) | config.assimilate_first, 1.0, 0.0).astype(ens.dtype)
         x_init, start = sampler_start(config, prior_ens, k_init, y, model, guide)
         post = sample(params, context, y, x_init, start, k_rev, guide)
@@ -350,7 +350,7 @@ def csf_filter(params, obs, ensemble, *, problem: StateSpaceModel, key,
     _checks.check_key(key, name="csf_jax.filter")
     params, network = trained.unpack(params, problem, network)
     obs, ensemble = _checks.promote(obs, ensemble)
-    prior = _prior_for(params, prior, network, config.sigma_max)
+    prior = _prior_for(params, prior, network, config.sigma_max, config.encode_particles)
     if not isinstance(shards, int) or shards < 1 or ensemble.shape[-2] % shards:
         raise ValueError(f"csf_jax.filter: shards must be a positive int dividing the number of "
                          f"particles N={ensemble.shape[-2]}, got {shards!r}")

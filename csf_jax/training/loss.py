@@ -11,20 +11,32 @@ import jax
 import jax.numpy as jnp
 
 from csf_jax import networks
+from csf_jax.prior import ResidualContext, ensemble_moments, residual_score
 from csf_jax.sde import marginal_std
 
 
-def set_loss(params, config: networks.NetworkConfig, subset, x0, t, z):
-    """Loss of one set. ``subset: (n, d)`` the encoded particles; ``x0, z: (T, d)``; ``t: (T,)``."""
-    code = networks.encode(params, subset, config)
+def set_loss(params, config: networks.NetworkConfig, subset, x0, t, z, full=None):
+    """Loss of one set. ``subset: (n, d)`` the encoded particles; ``x0, z: (T, d)``; ``t: (T,)``.
+
+    full: ``(M, d)`` the whole stored ensemble the subset and targets come from; the Gaussian base
+    of a ``base="gaussian"`` network takes its moments from it (as the filter does from all N).
+    """
     sigma = marginal_std(t, config.sigma_max)[:, None]
-    s = networks.score(params, x0 + sigma * z, t, code, config)
+    xt = x0 + sigma * z
+    code = networks.encode(params, subset, config)
+    if config.base == "gaussian":
+        ctx = ResidualContext(code, ensemble_moments(subset if full is None else full))
+        s = jax.vmap(lambda x, ti: residual_score(params, config, ctx, x[None], ti)[0])(xt, t)
+    else:
+        s = networks.score(params, xt, t, code, config)
     return jnp.mean(jnp.sum((sigma * s + z) ** 2, axis=-1))
 
 
-def batch_loss(params, config: networks.NetworkConfig, subsets, x0, t, z):
-    """Mean of ``set_loss`` over a batch: ``subsets (B, n, d)``, ``x0, z (B, T, d)``, ``t (B, T)``."""
-    losses = jax.vmap(set_loss, in_axes=(None, None, 0, 0, 0, 0))(params, config, subsets, x0, t, z)
+def batch_loss(params, config: networks.NetworkConfig, subsets, x0, t, z, full=None):
+    """Mean of ``set_loss`` over a batch: ``subsets (B, n, d)``, ``x0, z (B, T, d)``, ``t (B, T)``,
+    ``full (B, M, d)`` or None."""
+    losses = jax.vmap(set_loss, in_axes=(None, None, 0, 0, 0, 0, 0 if full is not None else None))(
+        params, config, subsets, x0, t, z, full)
     return jnp.mean(losses)
 
 

@@ -84,26 +84,28 @@ def init_state(key, network: networks.NetworkConfig, dim: int, config: TrainConf
 
 
 @functools.partial(jax.jit, static_argnames=("network", "config"), donate_argnums=(0,))
-def train_step(state: TrainState, subsets, x0, key, *, network, config: TrainConfig):
-    """One optimizer step on ``subsets (B, n, d)`` and targets ``x0 (B, T, d)``; returns
-    ``(state, loss)``."""
+def train_step(state: TrainState, subsets, x0, key, full=None, *, network, config: TrainConfig):
+    """One optimizer step on ``subsets (B, n, d)`` and targets ``x0 (B, T, d)`` (``full (B, M, d)``:
+    the whole ensembles, for a Gaussian-base network); returns ``(state, loss)``."""
     t, z = draw_noise(key, x0.shape[:2], x0.shape[-1], config.t_min)
-    loss, grads = jax.value_and_grad(batch_loss)(state.params, network, subsets, x0, t, z)
+    loss, grads = jax.value_and_grad(batch_loss)(state.params, network, subsets, x0, t, z, full)
     updates, opt_state = optimizer(config).update(grads, state.opt_state, state.params)
     params = optax.apply_updates(state.params, updates)
     return TrainState(params, opt_state, state.step + 1), loss
 
 
 @functools.partial(jax.jit, static_argnames=("network", "t_min"))
-def eval_loss(params, subsets, x0, key, *, network, t_min: float):
+def eval_loss(params, subsets, x0, key, full=None, *, network, t_min: float):
     """Held-out loss with fixed noise (same key, same number)."""
     t, z = draw_noise(key, x0.shape[:2], x0.shape[-1], t_min)
-    return batch_loss(params, network, subsets, x0, t, z)
+    return batch_loss(params, network, subsets, x0, t, z, full)
 
 
-def make_batch(data: Dataset, config: TrainConfig, step: int, split: str = "train"):
+def make_batch(data: Dataset, config: TrainConfig, step: int, split: str = "train",
+               full: bool = False):
     """The batch of ``step``: a pure function of ``(seed, step)``. Returns ``subsets (B, n, d)``
-    with n = ``set_sizes[step % len]`` and targets ``x0 (B, T, d)`` drawn from the whole ensembles."""
+    with n = ``set_sizes[step % len]`` and targets ``x0 (B, T, d)`` drawn from the whole ensembles;
+    with ``full``, also the whole ensembles ``(B, M, d)`` (a Gaussian-base network's moments)."""
     rng = np.random.default_rng([config.seed, step, 0 if split == "train" else 1])
     ens = sample_batch(data, rng, config.batch_sets if split == "train" else config.valid_sets,
                        split)
@@ -115,8 +117,8 @@ def make_batch(data: Dataset, config: TrainConfig, step: int, split: str = "trai
     x0 = np.take_along_axis(ens, tgt_idx[..., None], axis=1)
     if config.mirror and split == "train":
         sign = rng.choice(np.array([-1.0, 1.0], np.float32), (ens.shape[0], 1, 1))
-        subsets, x0 = subsets * sign, x0 * sign
-    return subsets, x0
+        subsets, x0, ens = subsets * sign, x0 * sign, ens * sign
+    return (subsets, x0, ens) if full else (subsets, x0)
 
 
 def train(problem: str, data: Dataset, out_dir: str, *, network: networks.NetworkConfig,
@@ -134,15 +136,17 @@ def train(problem: str, data: Dataset, out_dir: str, *, network: networks.Networ
         state, found = restored
         meta["valid_loss"], meta["seconds"] = found["valid_loss"], found["seconds"]
         _log(verbose, f"[train {problem}] resumed from step {int(state.step)} in {out_dir}")
+    full = network.base == "gaussian"
     valid = make_batch(data, dataclasses.replace(config, set_sizes=(max(config.set_sizes),)), 0,
-                       "valid")
+                       "valid", full)
     valid_key = jax.random.key(10_000 + config.seed)
     start, t_start, ema = int(state.step), time.perf_counter(), None
     step = start
     for step in range(start, config.steps):
-        subsets, x0 = make_batch(data, config, step)
+        batch = make_batch(data, config, step, full=full)
         key = jax.random.fold_in(jax.random.key(config.seed), step)
-        state, loss = train_step(state, subsets, x0, key, network=network, config=config)
+        state, loss = train_step(state, batch[0], batch[1], key, *batch[2:], network=network,
+                                 config=config)
         done = step + 1
         if done % log_every == 0 or done == config.steps:
             loss = float(loss)
@@ -151,7 +155,8 @@ def train(problem: str, data: Dataset, out_dir: str, *, network: networks.Networ
             _log(verbose, f"\r[train {problem}] step {done}/{config.steps} loss {ema:.4f} "
                           f"{rate:.1f} steps/s {rate * config.batch_sets:.0f} sets/s", end="")
         if done % config.eval_every == 0 or done == config.steps:
-            v = float(eval_loss(state.params, *valid, valid_key, network=network,
+            v = float(eval_loss(state.params, valid[0], valid[1], valid_key, *valid[2:],
+                                network=network,
                                 t_min=config.t_min))
             meta["valid_loss"].append([done, v])
             _log(verbose, f"  valid {v:.4f}", end="")

@@ -1,0 +1,183 @@
+"""A near-exact reference filter for models that factorise per coordinate, shocks included.
+
+The table's problems almost factorise: the observation ``y_i = h(x_i) + w_i`` sees one coordinate
+through i.i.d. noise, the process noise is i.i.d., and the drift couples coordinates weakly or not
+at all (``A_n``: 0.1 dt = 0.001 per step on the super-diagonal). So the filtering density is close to
+the product of its one-dimensional marginals, and each marginal is one-dimensional: a particle
+filter with tens of thousands of particles per coordinate is near-exact there, where a joint
+particle filter in 10-20 dimensions collapses.
+
+The reference keeps ``M`` particles per coordinate, ``particles: (M, d)``, column ``j`` being the
+particle system of coordinate ``j``; columns are resampled independently, so a row is a draw from
+the product of the marginals, and ``drift`` applied to rows propagates each coordinate with its
+neighbours drawn from their marginals (the product-of-marginals closure of a coupled drift).
+
+Shocks. The truth is shocked at unknown steps (``model.shock``, e.g. every coordinate jumps by
+``+-1``, or the state is reflected); the CSF, EnKF and PF of the table do not model them, the
+reference does. Each step weighs two hypotheses, no shock and shock, with the prior probability
+``P(step k is a shock step)`` estimated from ``model.shock_times`` by Monte Carlo: their likelihoods
+are products over coordinates of the per-coordinate predictive likelihoods, so all coordinates vote
+on whether a shock happened. The posterior marginal of each coordinate is the hypotheses' mixture.
+Two approximations, both small here: the marginals are collapsed to a product every step, and the
+shock prior is the per-step marginal (it ignores that a run has exactly ``shock_count`` shocks).
+How close it is, is measured, not assumed: ``experiments.reference`` reruns it with more particles,
+and ``tests/test_reference.py`` checks it against the Kalman filter on a linear-Gaussian model.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.scipy.special import logsumexp
+
+from csf_jax._checks import check_filter_inputs, check_key, check_result_finite, promote
+from csf_jax.filters.result import FilterResult, mark_nonfinite
+from csf_jax.ssm import StateSpaceModel
+
+
+class ReferenceConfig(NamedTuple):
+    """Settings of the reference filter; defaults made the table's reference row.
+
+    particles: M particles per coordinate.
+    model_shocks: weigh the shock hypothesis each step (False: a plain per-coordinate PF).
+    shock_draws: Monte Carlo draws of ``model.shock_times`` for the per-step shock probability.
+    """
+
+    particles: int = 20000
+    model_shocks: bool = True
+    shock_draws: int = 4096
+
+
+
+def shock_probability(model: StateSpaceModel, num_steps: int, draws: int = 4096,
+                      seed: int = 0) -> np.ndarray:
+    """``(K,)``: the probability that the truth is shocked at step k (``x_{k+1}``), estimated from
+    ``draws`` draws of ``model.shock_times``, floored at ``0.5 / draws`` inside the steps it ever hits."""
+    with jax.ensure_compile_time_eval():  # host values even when called under jit/vmap
+        keys = jax.random.split(jax.random.key(seed), draws)
+        hits = np.asarray(jax.vmap(lambda k: model.shock_times(k, num_steps))(keys))
+    p = hits.mean(0)
+    return np.where(p > 0, np.maximum(p, 0.5 / draws), 0.0)
+
+
+def check_separable(model: StateSpaceModel, name: str = "reference_filter") -> None:
+    """Refuse a model whose observation does not see each coordinate on its own (``y_i = h(x_i) + w_i``)."""
+    if model.obs_dim != model.dim:
+        raise ValueError(f"{name}: needs obs_dim == dim (one observation per coordinate), got "
+                         f"{model.obs_dim} and {model.dim}")
+    with jax.ensure_compile_time_eval():
+        jac = np.asarray(jax.jacfwd(model.observe)(jnp.linspace(-1.3, 1.7, model.dim)))
+    if np.any(np.abs(jac - np.diag(np.diag(jac))) > 1e-6 * (1 + np.abs(jac).max())):
+        raise ValueError(f"{name}: the observation mixes coordinates (its Jacobian is not "
+                         f"diagonal); the reference filter needs y_i = h(x_i) + w_i")
+
+
+def _coordinate_loglik(model: StateSpaceModel, y, particles):
+    """``(M, d)`` log p(y_j | x_j) of every particle of every coordinate (i.i.d. noise)."""
+    resid = y - jax.vmap(model.observe)(particles)
+    return jax.vmap(jax.vmap(lambda r: model.obs_noise.log_prob(r[None])))(resid)
+
+
+def _resample_columns(key, candidates, log_w, m: int):
+    """``m`` systematic draws per column from ``candidates (C, d)`` with ``log_w (C, d)``."""
+    w = jnp.exp(log_w - logsumexp(log_w, axis=0))
+    cdf = jnp.cumsum(w, axis=0)
+    cdf = cdf / cdf[-1]
+    u = (jnp.arange(m, dtype=cdf.dtype)[:, None]
+         + jax.random.uniform(key, (1, candidates.shape[1]), cdf.dtype)) / m
+    idx = jax.vmap(lambda c, v: jnp.searchsorted(c, v, side="left"), in_axes=1, out_axes=1)(cdf, u)
+    idx = jnp.clip(idx, 0, candidates.shape[0] - 1)
+    return jnp.take_along_axis(candidates, idx, axis=0)
+
+
+@functools.partial(jax.jit, static_argnames=("model", "model_shocks"))
+def _reference_scan(obs, particles, shock_prob, key, *, model: StateSpaceModel, model_shocks: bool):
+    m = particles.shape[0]
+
+    def step(parts, inputs):
+        y, p_shock, key_k = inputs
+        k_prop, k_shock, k_roll, k_res = jax.random.split(key_k, 4)
+        # systematic resampling leaves every column sorted by ancestor: roll each column by its own
+        # random offset, so that a row pairs unrelated particles before a coupled drift sees it
+        offset = jax.random.randint(k_roll, (1, model.dim), 0, m)
+        parts = jnp.take_along_axis(parts, (jnp.arange(m)[:, None] + offset) % m, axis=0)
+        prior = (jax.vmap(model.drift)(parts)
+                 + model.process_std * jax.random.normal(k_prop, parts.shape, parts.dtype))
+        ll0 = _coordinate_loglik(model, y, prior)
+        if not model_shocks:
+            post = _resample_columns(k_res, prior, ll0, m)
+            weights = ll0
+            return post, _moments(prior, weights)
+        shocked = jax.vmap(model.shock)(jax.random.split(k_shock, m), prior)
+        ll1 = _coordinate_loglik(model, y, shocked)
+        # log predictive likelihood of each hypothesis: product over coordinates
+        ev0 = jnp.sum(logsumexp(ll0, axis=0) - jnp.log(m))
+        ev1 = jnp.sum(logsumexp(ll1, axis=0) - jnp.log(m))
+        lp0 = jnp.log1p(-p_shock) + ev0
+        lp1 = jnp.where(p_shock > 0, jnp.log(jnp.maximum(p_shock, 1e-30)) + ev1, -jnp.inf)
+        share = jnp.exp(lp1 - jnp.logaddexp(lp0, lp1))  # posterior probability of a shock
+        candidates = jnp.concatenate([prior, shocked], axis=0)
+        log_w = _candidate_weights(share, ll0, ll1)
+        post = _resample_columns(k_res, candidates, log_w, m)
+        return post, _moments(candidates, log_w)
+
+    keys = jax.random.split(key, obs.shape[0])
+    _, (mean, std) = jax.lax.scan(step, particles, (obs, shock_prob, keys))
+    return mean, std
+
+
+def _candidate_weights(share, ll0, ll1):
+    """``(2M, d)`` log weights of the no-shock and shock candidates: the hypothesis' probability
+    (``1 - share``, ``share``) times the within-hypothesis normalised likelihood weight."""
+    w0 = jnp.log1p(-share) + ll0 - logsumexp(ll0, axis=0)
+    w1 = jnp.log(jnp.maximum(share, 1e-37)) + jnp.where(share > 0, ll1 - logsumexp(ll1, axis=0),
+                                                         -jnp.inf)
+    return jnp.concatenate([w0, w1], axis=0)
+
+
+def _moments(candidates, log_w):
+    w = jnp.exp(log_w - logsumexp(log_w, axis=0))
+    mean = jnp.sum(w * candidates, axis=0)
+    return mean, jnp.sqrt(jnp.sum(w * (candidates - mean) ** 2, axis=0))
+
+
+def reference_filter(obs, ensemble, *, problem: StateSpaceModel, key,
+                     config: ReferenceConfig = ReferenceConfig(),
+                     check_finite: bool = True) -> FilterResult:
+    """Run the per-coordinate reference filter.
+
+    Args:
+      obs: (K, m) observations ``y_1 .. y_K``, m == d, ``y_i`` seeing only ``x_i``.
+      ensemble: (N, d) initial particles; the filter starts from ``config.particles`` of them per
+        coordinate, drawn with replacement column by column (N = config.particles: used as is).
+      problem: the state-space model (static).  key: a ``jax.random.key``.
+      config: ``ReferenceConfig``.
+    Returns:
+      ``FilterResult(mean (K, d), std (K, d))``: the weighted moments of the mixture over the
+      shock hypotheses, before resampling.
+    """
+    check_filter_inputs(obs, ensemble, problem, name="reference_filter")
+    check_key(key, name="reference_filter")
+    check_separable(problem)
+    if int(config.particles) < 2 or int(config.shock_draws) < 1:
+        raise ValueError(f"reference_filter: needs particles >= 2 and shock_draws >= 1, got "
+                         f"{config.particles} and {config.shock_draws}")
+    obs, ensemble = promote(obs, ensemble)
+    k_init, k_run = jax.random.split(key)
+    m = int(config.particles)
+    if ensemble.shape[0] != m:
+        idx = jax.random.randint(k_init, (m, problem.dim), 0, ensemble.shape[0])
+        ensemble = jnp.take_along_axis(ensemble, idx, axis=0)
+    K = obs.shape[0]
+    p = (shock_probability(problem, K, config.shock_draws) if config.model_shocks
+         else np.zeros(K))
+    mean, std = _reference_scan(obs, ensemble, jnp.asarray(p, obs.dtype), k_run, model=problem,
+                                model_shocks=bool(config.model_shocks))
+    result = mark_nonfinite(FilterResult(mean=mean, std=std), obs)
+    if check_finite:
+        check_result_finite("reference_filter", result)
+    return result
