@@ -72,7 +72,8 @@ def render(results: dict, command: str) -> str:
              "best of ours in the column (the reference apart); `-`: not run yet. Ref.: the "
              "near-exact reference filter (`csf_jax.reference_filter`, shocks modelled; why it "
              "is near-exact: below the table). CSF-G: CSF's sampler with the ensemble's own "
-             "Gaussian as the prior (`csf_jax.gaussian_prior()`, no network).", "",
+             "Gaussian as the prior (`csf_jax.gaussian_prior()`, no network) and base inflation "
+             "0 in every column (`experiments.run.GAUSSIAN_OVERRIDES`).", "",
              "| method | " + " | ".join(HEADERS) + " |", "|---" * (len(HEADERS) + 1) + "|"]
     best = {}
     for name, res in results.items():

@@ -58,3 +58,14 @@ def test_render_reference_row_and_ratios():
     csf = next(line for line in text[head:] if line.startswith("| CSF |"))
     assert csf.split("|")[2].strip() == f"{res['rmse']['csf'] / 0.001:.2f}"
     assert not any(line.startswith("| Ref. |") for line in text[head:head + 12])
+
+
+def test_cache_fingerprint_ignores_fields_added_at_their_neutral_value():
+    """A config field added later (``NetworkConfig.base``) must not invalidate the tables' cached
+    runs at its neutral value, and must at any other."""
+    from experiments import run
+    old = {"sf": {"network": {"hidden": 64}}, "steps": [1, 2]}
+    new = {"sf": {"network": {"hidden": 64, "base": "none"}}, "steps": (1, 2)}
+    assert run._fingerprint(new) == run._fingerprint(old)
+    other = {"sf": {"network": {"hidden": 64, "base": "gaussian"}}, "steps": [1, 2]}
+    assert run._fingerprint(other) != run._fingerprint(old)
