@@ -80,22 +80,32 @@ class GaussianContext(NamedTuple):
     cov: jax.Array
 
 
-def ensemble_moments(ensemble, jitter: float = 1e-6) -> GaussianContext:
-    """Mean and sample covariance of ``ensemble (N, d)``; ``jitter`` times the mean variance (plus a
-    tiny absolute floor) on the diagonal keeps a collapsed ensemble's covariance positive definite."""
+def _sample_moments(ensemble, jitter: float):
+    """Mean ``(d,)``, sample covariance ``(d, d)`` and the diagonal floor that keeps a collapsed or
+    rank-deficient ensemble's covariance positive definite: ``jitter`` times the mean variance plus
+    a tiny absolute amount."""
     n, d = ensemble.shape
     mean = ensemble.mean(0)
     centred = ensemble - mean
     cov = centred.T @ centred / max(n - 1, 1)
-    floor = jitter * jnp.trace(cov) / d + jnp.finfo(ensemble.dtype).tiny ** 0.5
-    return GaussianContext(mean, cov + floor * jnp.eye(d, dtype=ensemble.dtype))
+    return mean, cov, jitter * jnp.trace(cov) / d + jnp.finfo(ensemble.dtype).tiny ** 0.5
+
+
+def ensemble_moments(ensemble, jitter: float = 1e-6) -> GaussianContext:
+    """Mean and sample covariance of ``ensemble (N, d)``, the floor on its diagonal."""
+    mean, cov, floor = _sample_moments(ensemble, jitter)
+    return GaussianContext(mean, cov + floor * jnp.eye(ensemble.shape[-1], dtype=ensemble.dtype))
 
 
 def gaussian_score(x, ctx: GaussianContext, sigma):
-    """Score of ``N(mean, cov + sigma^2 I)`` at ``x (N, d)``: ``-(cov + sigma^2 I)^{-1} (x - mean)``."""
-    d = ctx.mean.shape[-1]
-    chol = _linalg.cholesky(ctx.cov + sigma ** 2 * jnp.eye(d, dtype=x.dtype))
-    return -_linalg.cho_solve(chol[None], x - ctx.mean)
+    """Score of ``N(mean, cov + sigma^2 I)`` at ``x (N, d)``: ``-(cov + sigma^2 I)^{-1} (x - mean)``.
+
+    sigma: a scalar (one factorisation for all rows) or ``(N,)``, one noise level per row.
+    """
+    sigma = jnp.asarray(sigma, x.dtype)
+    eye = jnp.eye(ctx.mean.shape[-1], dtype=x.dtype)
+    chol = _linalg.cholesky(ctx.cov + sigma[..., None, None] ** 2 * eye)
+    return -_linalg.cho_solve(chol if sigma.ndim else chol[None], x - ctx.mean)
 
 
 @functools.lru_cache(maxsize=None)
@@ -123,15 +133,16 @@ class ResidualContext(NamedTuple):
 def residual_score(params, config: networks.NetworkConfig, ctx: ResidualContext, x, t):
     """Gaussian score of the ensemble plus the net's correction at standardised coordinates.
 
-    ``x: (N, d)``; the net sees ``z = (x - m) / s`` with ``s = sqrt(diag C + sigma_t^2)`` and its
-    output (a score, ``out / sigma_t``) is rescaled to ``out / s``: the correction is measured in
-    units of the diffused ensemble's spread, wherever the ensemble sits.
+    ``x: (N, d)``, ``t`` scalar or ``(N,)``; the net sees ``z = (x - m) / s`` with
+    ``s = sqrt(diag C + sigma_t^2)`` and its output (a score, ``out / sigma_t``) is rescaled to
+    ``out / s``: the correction is measured in units of the diffused ensemble's spread, wherever the
+    ensemble sits.
     """
-    sigma = marginal_std(t, config.sigma_max)
+    sigma = jnp.asarray(marginal_std(t, config.sigma_max), x.dtype)[..., None]
     spread = jnp.sqrt(jnp.diagonal(ctx.moments.cov) + sigma ** 2)
     z = (x - ctx.moments.mean) / spread
     correction = networks.score(params, z, t, ctx.code, config) * (sigma / spread)
-    return gaussian_score(x, ctx.moments, sigma) + correction
+    return gaussian_score(x, ctx.moments, sigma[..., 0]) + correction
 
 
 @functools.lru_cache(maxsize=None)
@@ -184,10 +195,7 @@ def gaussian_precision(ensemble, inflation: float = 0.0, jitter: float = 1e-6):
     variance (plus a tiny absolute floor) is added to the diagonal, so a collapsed or rank-deficient
     ensemble (N <= d) still gives a finite precision. Plain-jnp Cholesky (``csf_jax._linalg``).
     """
-    n, d = ensemble.shape
-    centred = ensemble - ensemble.mean(0)
-    cov = centred.T @ centred / max(n - 1, 1)
-    eye = jnp.eye(d, dtype=ensemble.dtype)
-    floor = jitter * jnp.trace(cov) / d + jnp.finfo(ensemble.dtype).tiny ** 0.5
+    _, cov, floor = _sample_moments(ensemble, jitter)
+    eye = jnp.eye(ensemble.shape[-1], dtype=ensemble.dtype)
     chol = _linalg.cholesky(cov + (inflation ** 2 + floor) * eye)
     return _linalg.cho_solve(chol[None], eye)

@@ -84,6 +84,20 @@ def test_gaussian_base_network_with_zero_output_is_the_gaussian_prior():
         networks.NetworkConfig(base="mixture")
 
 
+def test_gaussian_base_score_takes_one_noise_level_per_row():
+    """Training evaluates the Gaussian-base score with one t per target: the same as row by row."""
+    cfg = networks.NetworkConfig(base="gaussian", hidden=16, heads=2, blocks=1, code_dim=8,
+                                 score_hidden=32, score_layers=2)
+    params = networks.init_params(jax.random.key(0), cfg, 3)
+    params = jax.tree_util.tree_map(
+        lambda a: a + 0.05 * jax.random.normal(jax.random.key(9), a.shape), params)
+    prior = learned_prior(cfg)
+    ctx = prior.condition(params, None, jax.random.normal(jax.random.key(1), (200, 3)), None)
+    x, t = jax.random.normal(jax.random.key(2), (5, 3)), jnp.linspace(0.05, 0.9, 5)
+    rows = jnp.stack([prior.score(params, ctx, x[i:i + 1], t[i])[0] for i in range(5)])
+    np.testing.assert_allclose(prior.score(params, ctx, x, t), rows, rtol=1e-5, atol=1e-6)
+
+
 def test_ensemble_moments_of_a_collapsed_ensemble_stay_positive_definite():
     ctx = ensemble_moments(jnp.ones((50, 4)))
     assert np.all(np.linalg.eigvalsh(np.asarray(ctx.cov)) > 0)

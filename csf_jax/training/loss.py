@@ -26,7 +26,7 @@ def set_loss(params, config: networks.NetworkConfig, subset, x0, t, z, full=None
     code = networks.encode(params, subset, config)
     if config.base == "gaussian":
         ctx = ResidualContext(code, ensemble_moments(subset if full is None else full))
-        s = jax.vmap(lambda x, ti: residual_score(params, config, ctx, x[None], ti)[0])(xt, t)
+        s = residual_score(params, config, ctx, xt, t)
     else:
         s = networks.score(params, xt, t, code, config)
     return jnp.mean(jnp.sum((sigma * s + z) ** 2, axis=-1))
