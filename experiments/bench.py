@@ -7,7 +7,8 @@
         [--torch-threads T] [--omp-wait-policy passive|active|unset] [--shards auto|S]
 
 For every state dimension d and ensemble size N it measures one filter step (propagate + encode +
-L reverse steps with the learned prior; random-init weights of the default ``NetworkConfig``; d = 1
+L reverse steps with the learned prior; random-init weights of the shipped models' network
+(:func:`network`: the default sizes with the Gaussian base, ``csf_jax.pretrained.NETWORK``); d = 1
 is the double well, d > 1 the cubic sensor ``cubic<d>_indep``), with the sampler of
 ``--guidance``, the same on both sides:
 
@@ -113,6 +114,15 @@ def save_params(params: dict, path: str) -> None:
     np.savez(path, **flat)
 
 
+def network():
+    """The benchmarked ``NetworkConfig``: the shipped models' (``csf_jax.pretrained.NETWORK``, the
+    default sizes with the Gaussian base). Imported here, not at the top: a torch worker loads jax
+    only through this and ``csf_jax.filters.csf``'s configs."""
+    from csf_jax.networks import NetworkConfig
+
+    return NetworkConfig(base="gaussian")
+
+
 def load_params(path: str) -> dict:
     """The nested dict of numpy arrays saved by :func:`save_params`."""
     out: dict = {}
@@ -144,13 +154,13 @@ def _jax_runner(spec: dict, params: dict, obs: np.ndarray, ens: np.ndarray):
     import jax
 
     import csf_jax
-    from csf_jax import NetworkConfig, problems
+    from csf_jax import problems
 
     name, overrides = problem_name(spec["d"])
     model = problems.get(name, **overrides)
     shards = spec.get("shards", 1)
     shards = shards if shards <= len(jax.local_devices()) and spec["N"] % shards == 0 else 1
-    one = functools.partial(csf_jax.filter, problem=model, network=NetworkConfig(),
+    one = functools.partial(csf_jax.filter, problem=model, network=network(),
                             config=csf_config(spec), check_finite=False, shards=shards)
     params = jax.tree_util.tree_map(jax.numpy.asarray, params)
     if spec["vmap"]:
@@ -186,14 +196,13 @@ def _torch_runner(spec: dict, params: dict, obs: np.ndarray, ens: np.ndarray):
     runs are filtered one after the other."""
     import torch
 
-    from csf_jax import NetworkConfig
     from experiments import torch_csf as tc
 
     if spec.get("torch_threads"):
         torch.set_num_threads(spec["torch_threads"])
     name, overrides = problem_name(spec["d"])
     config = csf_config(spec)
-    nets = tc.flax_to_torch(params, NetworkConfig(), spec["d"])
+    nets = tc.flax_to_torch(params, network(), spec["d"])
     problem = tc.torch_problem(name, **overrides)
     step = tc.make_reverse_step(nets, problem, config, compile=spec["compile"])
     obs_t, ens_t = torch.from_numpy(obs), torch.from_numpy(ens)
@@ -485,7 +494,6 @@ def main(argv=None):
     import jax
 
     import csf_jax
-    from csf_jax import NetworkConfig
 
     os.makedirs(args.out, exist_ok=True)
     impls = [i for i in args.impls.split(",") if i]
@@ -496,7 +504,7 @@ def main(argv=None):
         def prepare(d, n, k, runs, tag):
             params_path, data_path = f"{tmp}/params_{d}.npz", f"{tmp}/data_{tag}_{d}_{n}.npz"
             if not os.path.exists(params_path):
-                save_params(csf_jax.init_params(jax.random.key(0), NetworkConfig(), d), params_path)
+                save_params(csf_jax.init_params(jax.random.key(0), network(), d), params_path)
             obs, ens = make_data(d, n, k, runs)
             np.savez(data_path, obs=obs, ens=ens)
             return {"params": params_path, "data": data_path, "d": d, "N": n, "steps": args.steps,

@@ -7,7 +7,7 @@ ensemble ``c_i`` the prior is the mixture ``(1/N) sum_i N(c_i, q^2 I)``, which i
 prior (``params=None``) scores. The ensembles hold M distinct centres (M = 1: the Gaussian
 ``N(m, q^2 I)``; M > 1: a Gaussian mixture). The truth is drawn from that prior, ``y = h(x) + w``
 with ``h`` the identity (compared with the Kalman filter's closed form) or the cubic sensor
-``x^3`` (noise std 0.1). The likelihood factorises over coordinates, so within each mixture component
+``x^3`` (noise std 0.1, or the Cauchy problem's Cauchy noise of scale 0.0544 in d = 5). The likelihood factorises over coordinates, so within each mixture component
 the exact posterior is a product of 1-D posteriors, found by quadrature on a fine grid; the
 components' weights are their evidences. Per case, sampler and step count it reports
 
@@ -36,7 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from csf_jax import CSFConfig, GuidanceConfig, StateSpaceModel, gaussian_noise
+from csf_jax import CSFConfig, GuidanceConfig, StateSpaceModel, cauchy_noise, gaussian_noise
 from csf_jax.filters.csf import csf_filter
 from experiments._cli import int_list, name_list, nonnegative_int, particle_count, positive_int
 
@@ -52,6 +52,7 @@ class Case:
     centre_std: float = 1.0
     sensor: str = "cubic"
     obs_std: float = 0.1
+    noise: str = "gaussian"  # or "cauchy" (obs_std is then the scale)
 
 
 CASES = (
@@ -65,6 +66,8 @@ CASES = (
     Case("cubic d10 mixture broad", prior_std=1.0, components=4),
     Case("cubic d20 mixture narrow", dim=20, prior_std=0.3, components=4),
     Case("cubic d20 mixture broad", dim=20, prior_std=1.0, components=4),
+    Case("cubic d5 cauchy narrow", dim=5, prior_std=0.3, obs_std=0.0544, noise="cauchy"),
+    Case("cubic d5 cauchy broad", dim=5, prior_std=1.0, obs_std=0.0544, noise="cauchy"),
 )
 
 
@@ -100,7 +103,7 @@ def model_for(case: Case) -> StateSpaceModel:
     return StateSpaceModel(
         name=f"posterior_quality_{case.sensor}", dim=d, obs_dim=d, num_steps=1, dt=1.0,
         drift=lambda x: x, observe=observe_fn(case.sensor), process_std=case.prior_std,
-        obs_noise=gaussian_noise(case.obs_std),
+        obs_noise=(cauchy_noise if case.noise == "cauchy" else gaussian_noise)(case.obs_std),
         initial_truth=lambda key: jnp.zeros((d,)),
         initial_ensemble=lambda key, n: jnp.zeros((n, d)))
 
@@ -114,7 +117,8 @@ def make_data(case: Case, key, trials: int, particles: int) -> CaseData:
     centres = jnp.repeat(means, -(-particles // M), axis=1)[:, :particles]
     pick = jax.random.randint(k_pick, (trials,), 0, M)
     truth = means[jnp.arange(trials), pick] + case.prior_std * jax.random.normal(k_x, (trials, d))
-    obs = observe_fn(case.sensor)(truth) + case.obs_std * jax.random.normal(k_w, (trials, d))
+    draw = jax.random.cauchy if case.noise == "cauchy" else jax.random.normal
+    obs = observe_fn(case.sensor)(truth) + case.obs_std * draw(k_w, (trials, d))
     return CaseData(np.asarray(centres), np.asarray(truth), np.asarray(obs)[:, None, :])
 
 
@@ -130,7 +134,8 @@ def exact_posterior(case: Case, data: CaseData, grid_points: int = 20001) -> Exa
         lo, hi = means.min(0) - 7 * q, means.max(0) + 7 * q                     # (d,)
         grid = lo[:, None] + (hi - lo)[:, None] * np.linspace(0, 1, grid_points)  # (d, G)
         dx = (hi - lo) / (grid_points - 1)
-        loglik = -0.5 * ((y[:, None] - h(grid)) / r) ** 2                       # (d, G)
+        resid = (y[:, None] - h(grid)) / r                                      # (d, G)
+        loglik = -np.log1p(resid ** 2) if case.noise == "cauchy" else -0.5 * resid ** 2
         logp = -0.5 * ((grid[None] - means[:, :, None]) / q) ** 2 + loglik[None]  # (M, d, G)
         shift = logp.max(axis=(0, 2), keepdims=True)
         dens = np.exp(logp - shift)
@@ -181,6 +186,9 @@ SAMPLERS = {  # inflation 0, fixed: the exact Bayes update of the one step
                                        guidance=GuidanceConfig(mode="clipped")),
     "dps raw": lambda L: CSFConfig(reverse_steps=L, prior_inflation=0.0, adaptive_inflation=False,
                                    guidance=GuidanceConfig(mode="raw")),
+    # heavy-tailed proposals (the Cauchy column's, experiments.run.CSF_OVERRIDES)
+    "kalman t1x32": lambda L: CSFConfig(reverse_steps=L, prior_inflation=0.0, adaptive_inflation=False,
+                                        guidance=GuidanceConfig(proposal_df=1, proposals=32)),
 }
 
 
@@ -233,9 +241,11 @@ def write(path: str, command: str, args, rows) -> None:
     with open(path + ".tmp", "w") as f:
         json.dump(record, f, indent=1)
     os.replace(path + ".tmp", path)
+    made = sorted({r.get("command", command) for r in rows})
     with open(os.path.splitext(path)[0] + ".md", "w") as f:
-        f.write(f"Made by `{command}` ({args.trials} trials, N = {args.particles}, inflation 0, "
-                f"seed {args.seed}).\n\n{table(rows)}\n")
+        f.write(f"Made by {', then '.join(f'`{c}`' for c in made)} ({args.trials} trials, "
+                f"N = {args.particles}, inflation 0, seed {args.seed}; rows already in the file "
+                f"are kept, not rerun).\n\n{table(rows)}\n")
 
 
 def main(argv=None):
@@ -260,14 +270,15 @@ def main(argv=None):
             old = json.load(f)
         if (old["trials"], old["particles"], old["seed"]) == (args.trials, args.particles,
                                                                args.seed):
-            done = {_row_key(r): r for r in old["rows"]}
+            done = {_row_key(r): {**r, "command": r.get("command", old["command"])}
+                    for r in old["rows"]}
     rows = []
     for case in (c for c in CASES if c.name in args.cases):
         for name, steps in args.samplers:
             row = done.get((case.name, name, steps))
             if row is None:
                 row = evaluate(case, name, steps, trials=args.trials, particles=args.particles,
-                               seed=args.seed)
+                               seed=args.seed) | {"command": command}
             rows.append(row)
             print(table([row]).splitlines()[-1], flush=True)
             write(args.out, command, args, rows + [r for k, r in done.items()

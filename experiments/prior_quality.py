@@ -14,6 +14,7 @@ distance, all in state units.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 
 import jax
@@ -65,7 +66,8 @@ def main(argv=None):
     data = load(data_dir)
     rng = np.random.default_rng(args.seed)
     net = model.network
-    cond_prior, scratch_prior = learned_prior(net), unconditional_prior(net)
+    scratch_net = dataclasses.replace(net, base="none")  # a plain score net, as the paper's SF
+    cond_prior, scratch_prior = learned_prior(net), unconditional_prior(scratch_net)
     sample_j = jax.jit(sample, static_argnames=("prior", "n", "d"))
     rows = {"conditional (pretrained)": [], "scratch (one ensemble)": [], "floor (half vs half)": []}
     for j in range(args.ensembles):
@@ -73,10 +75,10 @@ def main(argv=None):
                                          rng.integers(data.ensembles.shape[1])], jnp.float32)
         n, d = ens.shape
         key = jax.random.fold_in(jax.random.key(args.seed), j)
-        code = networks.encode(model.params, ens, net)
-        gen = sample_j(model.params, cond_prior, code, n, d, key)
-        fresh = networks.init_params(jax.random.fold_in(key, 1), net, d)
-        scratch, _ = fit_unconditional(jax.random.fold_in(key, 2), ens, fresh, config=net,
+        context = cond_prior.condition(model.params, ens, ens, 0.0)
+        gen = sample_j(model.params, cond_prior, context, n, d, key)
+        fresh = networks.init_params(jax.random.fold_in(key, 1), scratch_net, d)
+        scratch, _ = fit_unconditional(jax.random.fold_in(key, 2), ens, fresh, config=scratch_net,
                                        steps=args.scratch_steps)
         gen_s = sample_j(scratch, scratch_prior, jnp.zeros((net.code_dim,)), n, d, key)
         rows["conditional (pretrained)"].append(compare(gen, ens))

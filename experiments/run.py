@@ -77,13 +77,7 @@ LABELS = {"csf": "CSF", "csf_gaussian": "CSF-G", "sf": "SF", "enkf": "EnKF", "pf
           "reference": "Ref."}
 # csf_gaussian: CSF's sampler with the ensemble's own Gaussian as the prior (csf_jax.gaussian_prior,
 # no network, all N particles for the moments): the worst case issue 11 asks of a learned prior. It
-# runs with base inflation 0 in every column (GAUSSIAN_OVERRIDES, over the problem's CSF config):
-# the exact Bayes update between surprises, the adaptive inflation at them. The learned prior needed
-# a base of 0.2 (docs/ablation.md); the Gaussian one does not: on runs 0-1 base 0 gave 0.0298 /
-# 0.259 / 0.430 / 0.469 / 0.532 against 0.0345 / 0.299 / 0.432 / 0.480 / 0.565 with 0.2 (double
-# well, Cauchy, cubic10 I/C, cubic20 I), and the triple well needs no model-error override (its
-# Gaussian is the triple well's own ensemble's).
-GAUSSIAN_OVERRIDES = {"prior_inflation": 0.0}
+# runs with CSF's config of the column, so that CSF against CSF-G isolates the learned correction.
 # The near-exact reference filter (csf_jax.filters.reference) of the tables: M particles per
 # coordinate, shocks modelled, started from the model's initial law (not the N-particle ensemble).
 REFERENCE = ReferenceConfig()
@@ -92,11 +86,17 @@ QUICK = dict(runs=2, particles=100, steps=20, num_steps=10)
 QUICK_SF = SFConfig(train_steps=20, warmup_steps=100)
 PRIORS = ("pretrained", "exact", "gaussian")  # CSF's prior: --prior
 CPU_SF_RUNS = 1  # the CLI's default SF runs on a CPU (module doc)
-# Per-problem CSFConfig fields of the tables (CSF's sampler, shared by SF), on top of the defaults.
-# triple_well is the transfer experiment: it filters with the double-well prior, a wrong model, and
-# model error is what inflation is for. A base inflation of 1.0 (adaptive on top) gave 0.079 on the
-# table's 10 runs against 0.144 with the default 0.2 (0.7: 0.079, 1.5: 0.084; docs/ablation.md).
-CSF_OVERRIDES = {"triple_well": {"prior_inflation": 1.0}}
+# Per-problem CSFConfig fields of the tables, on top of the defaults; a "guidance" entry holds
+# GuidanceConfig fields. Cauchy noise has heavy tails, and so has the posterior: the Laplace
+# proposals (Gaussian around the mode) never propose its tails and the resampled ensemble comes out
+# too narrow (docs/ablation.md). Student-t proposals with one degree of freedom, the noise's own
+# tail, and 32 of them per particle (runs 0-2: 0.264 against 0.303 with 8 Gaussian ones).
+CSF_OVERRIDES = {"cauchy": {"guidance": {"proposal_df": 1, "proposals": 32}}}
+# SF's sampler in the tables: the CSF config its cached runs were made with (base inflation 0.2),
+# kept when CSF's moved to base 0 (2026-11-24): SF's runs cost hours. The triple well's SF runs
+# (3.5 min for 10) were remade with CSF's sampler (base 0; it had 1.0 before, as CSF had then).
+SF_SAMPLER_BASE = {"prior_inflation": 0.2}
+SF_SAMPLER_OVERRIDES = {"triple_well": {"prior_inflation": 0.0}}
 
 
 class Progress:
@@ -157,13 +157,15 @@ def simulate_runs(model, runs: int, particles: int, seed: int):
 
 def method_fn(method: str, model, config: CSFConfig, sf: SFConfig, pretrained, progress,
               return_ensembles: bool = False, sf_shards: int = 1,
-              reference: ReferenceConfig = REFERENCE, prior=None):
+              reference: ReferenceConfig = REFERENCE, prior=None,
+              sf_sampler: Optional[CSFConfig] = None):
     """``(obs (K, m), ens (N, d), key) -> FilterResult`` for one run of ``method``.
 
     pretrained: a ``csf_jax.pretrained.Pretrained`` for CSF (passed whole: the filter checks it
     was trained for ``model``), or None for the exact mixture prior.
     prior: CSF's ``PriorScore`` when not the pretrained or exact one (``gaussian_prior()``).
     sf_shards: SF's training batch split over this many local devices (``score_filter``).
+    sf_sampler: SF's sampler (default ``config``; the tables pass ``sf_sampler_config``).
     reference: the reference filter's settings; it draws ``reference.particles`` from the model's
     initial law (with ``fold_in(key, 1)``) instead of using ``ens``.
     """
@@ -172,14 +174,14 @@ def method_fn(method: str, model, config: CSFConfig, sf: SFConfig, pretrained, p
                                               prior=prior, progress=progress,
                                               return_ensembles=return_ensembles)
     if method == "csf_gaussian":
-        cfg = gaussian_config(config)
-        return lambda o, e, k: csf_jax.filter(None, o, e, problem=model, key=k, config=cfg,
+        return lambda o, e, k: csf_jax.filter(None, o, e, problem=model, key=k, config=config,
                                               prior=gaussian_prior(config.sigma_max),
                                               progress=progress,
                                               return_ensembles=return_ensembles)
     if method == "sf":
         return lambda o, e, k: csf_jax.score_filter(o, e, problem=model, key=k, config=sf,
-                                                    sampler=config, progress=progress,
+                                                    sampler=sf_sampler or config,
+                                                    progress=progress,
                                                     return_ensembles=return_ensembles,
                                                     shards=sf_shards)
     if method == "enkf":
@@ -195,7 +197,8 @@ def method_fn(method: str, model, config: CSFConfig, sf: SFConfig, pretrained, p
 
 # Config fields added after caches were made, at the value that reproduces the old behaviour: left
 # out of fingerprints, so that adding a field does not invalidate the cached runs of the tables.
-NEUTRAL_FIELDS = {"base": "none"}  # NetworkConfig.base (SFConfig.network), 2026-11-23
+NEUTRAL_FIELDS = {"base": "none",  # NetworkConfig.base (SFConfig.network), 2026-11-23
+                  "proposal_df": None}  # GuidanceConfig.proposal_df, 2026-11-24
 
 
 def _neutral(obj):
@@ -211,6 +214,19 @@ def _fingerprint(obj) -> str:
     """A short hash of a JSON-able config (``NEUTRAL_FIELDS`` at their neutral value left out)."""
     return hashlib.sha256(json.dumps(_neutral(obj), sort_keys=True,
                                      default=repr).encode()).hexdigest()[:16]
+
+
+def method_ident(method: str, name: str, cfg: dict, reference: ReferenceConfig) -> str:
+    """The cache fingerprint of ``method``'s runs of problem ``name`` under the run config ``cfg``
+    (``run``'s ``results.json["config"]``): the problem, N, seed, and what the method's results
+    depend on (CSF: its config, prior and model; SF: its config and sampler)."""
+    config = ({"csf": cfg["csf"], "prior": cfg["csf_prior"], "model": cfg["csf_model_id"]}
+              if method == "csf" else
+              {"csf": cfg["csf"]} if method == "csf_gaussian" else
+              {"sf": cfg["sf"], "csf": cfg["sf_sampler"]} if method == "sf" else
+              {"reference": reference._asdict()} if method == "reference" else None)
+    return _fingerprint({"problem": cfg["problem"], "name": name, "particles": cfg["particles"],
+                         "seed": cfg["seed"], "method": method, "config": config})
 
 
 def _cached(cache_dir, method, lo, hi, ident):
@@ -348,15 +364,18 @@ def default_batch(method: str, runs: int) -> int:
 
 def csf_config(name: str, steps: int = CSFConfig().reverse_steps,
                guidance: str = GuidanceConfig().mode) -> CSFConfig:
-    """The CSF (and SF sampler) config of problem ``name`` in the tables: ``steps`` reverse steps,
-    the ``guidance`` mode, ``CSF_OVERRIDES[name]``, defaults otherwise."""
+    """The CSF (and CSF-G) config of problem ``name`` in the tables: ``steps`` reverse steps, the
+    ``guidance`` mode, ``CSF_OVERRIDES[name]``, defaults otherwise."""
+    fields = dict(CSF_OVERRIDES.get(name, {}))
+    sub = fields.pop("guidance", {})
+    return CSFConfig(reverse_steps=steps, guidance=GuidanceConfig(mode=guidance, **sub), **fields)
+
+
+def sf_sampler_config(name: str, steps: int = CSFConfig().reverse_steps,
+                      guidance: str = GuidanceConfig().mode) -> CSFConfig:
+    """SF's sampler in the tables: ``SF_SAMPLER_BASE`` with ``SF_SAMPLER_OVERRIDES[name]``."""
     return CSFConfig(reverse_steps=steps, guidance=GuidanceConfig(mode=guidance),
-                     **CSF_OVERRIDES.get(name, {}))
-
-
-def gaussian_config(config: CSFConfig) -> CSFConfig:
-    """CSF-G's config: ``config`` with ``GAUSSIAN_OVERRIDES``."""
-    return dataclasses.replace(config, **GAUSSIAN_OVERRIDES)
+                     **(SF_SAMPLER_BASE | SF_SAMPLER_OVERRIDES.get(name, {})))
 
 
 def sf_shards(runs: int, sf: SFConfig) -> int:
@@ -389,12 +408,14 @@ def run(name: str, methods=METHODS, runs: int = 10, particles: int = 1000,
     model = problems.get(name, **overrides)
     pretrained = load_pretrained(name) if prior == "pretrained" and "csf" in methods else None
     config = csf_config(name, steps, guidance)
+    sf_sampler = sf_sampler_config(name, steps, guidance)
     truth, obs, shocks, ens, keys = simulate_runs(model, runs, particles, seed)
     truth, shocks_np = np.asarray(truth), np.asarray(shocks)
     K = obs.shape[1]
     cfg = {"runs": runs, "particles": particles, "reverse_steps": steps, "seed": seed,
            "num_steps": K, "problem": dataclasses.asdict(problems.config(name)) | overrides,
-           "csf": dataclasses.asdict(config), "csf_prior": prior,
+           "csf": dataclasses.asdict(config), "sf_sampler": dataclasses.asdict(sf_sampler),
+           "csf_prior": prior,
            "csf_model": None if pretrained is None else pretrained.meta.get("problem"),
            "csf_model_id": None if pretrained is None else _fingerprint(pretrained.meta),
            "sf": dataclasses.asdict(sf), "method_runs": dict(method_runs or {})}
@@ -410,19 +431,13 @@ def run(name: str, methods=METHODS, runs: int = 10, particles: int = 1000,
     means = {}
     for method in methods:
         r_m = min(runs, (method_runs or {}).get(method, runs))
-        ident = _fingerprint({"problem": cfg["problem"], "name": name, "particles": particles,
-                              "seed": seed, "method": method,
-                              "config": {"csf": cfg["csf"], "prior": prior,
-                                         "model": cfg["csf_model_id"]} if method == "csf" else
-                              {"csf": dataclasses.asdict(gaussian_config(config))}
-                              if method == "csf_gaussian" else
-                              {"sf": cfg["sf"], "csf": cfg["csf"]} if method == "sf" else
-                              {"reference": reference._asdict()} if method == "reference" else None})
+        ident = method_ident(method, name, cfg, reference)
         bar = Progress(LABELS[method], r_m * K,
                        enabled=progress and method in ("csf", "csf_gaussian", "sf"))
         fn = method_fn(method, model, config, sf, pretrained, bar,
                        sf_shards=sf_shards(r_m, sf) if method == "sf" else 1, reference=reference,
-                       prior=gaussian_prior(config.sigma_max) if prior == "gaussian" else None)
+                       prior=gaussian_prior(config.sigma_max) if prior == "gaussian" else None,
+                       sf_sampler=sf_sampler)
         b = batch or default_batch(method, r_m)
         mean, seconds, compile_s, at_once = _filter_runs(method, fn, obs[:r_m], ens[:r_m],
                                                          keys[:r_m], b, cache, ident, bar)

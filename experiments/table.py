@@ -71,9 +71,11 @@ def render(results: dict, command: str) -> str:
              "RMSE (Eq. rmse, 10 runs unless marked), ours with the paper's in brackets; bold: the "
              "best of ours in the column (the reference apart); `-`: not run yet. Ref.: the "
              "near-exact reference filter (`csf_jax.reference_filter`, shocks modelled; why it "
-             "is near-exact: below the table). CSF-G: CSF's sampler with the ensemble's own "
-             "Gaussian as the prior (`csf_jax.gaussian_prior()`, no network) and base inflation "
-             "0 in every column (`experiments.run.GAUSSIAN_OVERRIDES`).", "",
+             "is near-exact: below the table). CSF-G: CSF's sampler and config with the ensemble's "
+             "own Gaussian as the prior (`csf_jax.gaussian_prior()`, no network): CSF against "
+             "CSF-G is the learned correction's worth. SF: its sampler has base inflation 0.2 "
+             "(`experiments.run.SF_SAMPLER_BASE`), the setting its cached runs were made with; "
+             "on the triple well CSF's (0).", "",
              "| method | " + " | ".join(HEADERS) + " |", "|---" * (len(HEADERS) + 1) + "|"]
     best = {}
     for name, res in results.items():
@@ -98,7 +100,7 @@ def render(results: dict, command: str) -> str:
         lines.append(f"| {run_mod.LABELS[m]} | " + " | ".join(cells) + " |")
     differ = _config_differences(results)
     if differ:
-        lines += ["", "CSF (and SF's sampler) settings other than `CSFConfig()`'s, per column "
+        lines += ["", "CSF (and CSF-G) settings other than `CSFConfig()`'s, per column "
                   "(`experiments.run.CSF_OVERRIDES`): " + "; ".join(differ) + "."]
     if any("rmse_ratio" in r for r in results.values()):
         lines += ["", "RMSE over the reference's RMSE on the same runs (1 is the best achievable):",
@@ -150,7 +152,7 @@ def render(results: dict, command: str) -> str:
 
 
 def _config_differences(results: dict) -> list:
-    """``["triple_well: prior_inflation=1.0", ...]``: each column's CSF config fields that differ
+    """``["cauchy: guidance.proposals=32", ...]``: each column's CSF config fields that differ
     from ``CSFConfig()`` (reverse steps and guidance mode apart: the page's command names those)."""
     default = dataclasses.asdict(run_mod.CSFConfig())
     out = []
@@ -160,6 +162,9 @@ def _config_differences(results: dict) -> list:
         used = results[name]["config"]["csf"]
         fields = [f"{k}={used[k]}" for k in default
                   if k not in ("reverse_steps", "guidance") and k in used and used[k] != default[k]]
+        guidance = used.get("guidance", {})
+        fields += [f"guidance.{k}={guidance[k]}" for k in default["guidance"]
+                   if k != "mode" and guidance.get(k, default["guidance"][k]) != default["guidance"][k]]
         if fields:
             out.append(f"{name}: {', '.join(fields)}")
     return out

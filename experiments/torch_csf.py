@@ -42,6 +42,7 @@ implementations.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Callable, NamedTuple, Optional
 
@@ -145,6 +146,8 @@ class AncestralSchedule(NamedTuple):
     adaptive: None (fixed inflation), or :class:`AdaptiveInflation` (``CSFConfig.adaptive_inflation``):
       :func:`step_schedule` then sets ``inflation`` and ``t_score`` per filter step.
     encode_particles: the encoder sees the first n particles of the prior ensemble (None: all).
+    proposal_df: the candidates' Student-t degrees of freedom (``GuidanceConfig.proposal_df``), or
+      None for Gaussian candidates.
     """
 
     sigma: torch.Tensor
@@ -158,6 +161,7 @@ class AncestralSchedule(NamedTuple):
     sigma_max: float = 25.0
     adaptive: Optional["AdaptiveInflation"] = None
     encode_particles: Optional[int] = None
+    proposal_df: Optional[int] = None
 
 
 class AdaptiveInflation(NamedTuple):
@@ -189,7 +193,8 @@ def ancestral_schedule(config: CSFConfig, dtype: torch.dtype = DTYPE) -> Ancestr
     sigma_start = marginal_std(torch.tensor(1.0, dtype=dtype), config.sigma_max)
     return AncestralSchedule(sigma, t_score, rho, torch.sqrt(var), first, sigma_start,
                              config.prior_inflation, config.guidance.proposals, config.sigma_max,
-                             _adaptive(config), config.encode_particles)
+                             _adaptive(config), config.encode_particles,
+                             config.guidance.proposal_df)
 
 
 def _adaptive(config: CSFConfig) -> Optional[AdaptiveInflation]:
@@ -353,10 +358,55 @@ class ScoreNet(nn.Module):
 
 
 class Networks(NamedTuple):
-    """The two torch modules of the learned prior (eval mode, ``requires_grad=False``)."""
+    """The two torch modules of the learned prior (eval mode, ``requires_grad=False``) and the
+    network's ``NetworkConfig.base``: "none" (the net is the whole score) or "gaussian" (the
+    ensemble's Gaussian score plus the net's correction, :func:`prior_score`)."""
 
     encoder: SetEncoder
     score: ScoreNet
+    base: str = "none"
+
+
+class GaussianBase(NamedTuple):
+    """``csf_jax.prior.ResidualContext``: the code ``(C,)`` and the prior ensemble's mean ``(d,)``
+    and floored sample covariance ``(d, d)``."""
+
+    code: torch.Tensor
+    mean: torch.Tensor
+    cov: torch.Tensor
+
+
+def ensemble_moments(ensemble: torch.Tensor, jitter: float = 1e-6):
+    """``csf_jax.prior.ensemble_moments``: mean and ``C + floor I`` of ``ensemble (N, d)``."""
+    n, d = ensemble.shape
+    mean = ensemble.mean(0)
+    centred = ensemble - mean
+    cov = centred.T @ centred / max(n - 1, 1)
+    floor = jitter * torch.trace(cov) / d + torch.finfo(ensemble.dtype).tiny ** 0.5
+    return mean, cov + floor * torch.eye(d, dtype=ensemble.dtype)
+
+
+def condition(nets: Networks, prior_ens: torch.Tensor, encode_particles: Optional[int]):
+    """The prior's context of one filter step: the code of the first ``encode_particles`` particles,
+    with a Gaussian base also the moments of all of them (a :class:`GaussianBase`)."""
+    code = nets.encoder(prior_ens[:encode_particles])
+    if nets.base == "gaussian":
+        return GaussianBase(code, *ensemble_moments(prior_ens))
+    return code
+
+
+def prior_score(nets: Networks, x: torch.Tensor, t: torch.Tensor, ctx) -> torch.Tensor:
+    """``csf_jax.prior.learned_prior``'s score at ``x (N, d)``, time ``t`` (0-d): the net alone, or
+    with a Gaussian base ``-(C + sigma^2 I)^{-1} (x - m)`` plus the net's output at
+    ``z = (x - m) / s`` rescaled by ``sigma / s``, ``s = sqrt(diag C + sigma^2)``."""
+    if not isinstance(ctx, GaussianBase):
+        return nets.score(x, t, ctx)
+    sigma = marginal_std(t, nets.score.sigma_max)
+    spread = torch.sqrt(torch.diagonal(ctx.cov) + sigma ** 2)
+    correction = nets.score((x - ctx.mean) / spread, t, ctx.code) * (sigma / spread)
+    eye = torch.eye(x.shape[-1], dtype=x.dtype)
+    chol = torch.linalg.cholesky_ex(ctx.cov + sigma ** 2 * eye).L
+    return -torch.cholesky_solve((x - ctx.mean).T, chol).T + correction
 
 
 def _t(a) -> torch.Tensor:
@@ -395,9 +445,6 @@ def flax_to_torch(params: dict, config: NetworkConfig, dim: Optional[int] = None
       config: the ``NetworkConfig`` the params were built with.
       dim: state dimension d (default: read off the score net's output layer).
     """
-    if config.base != "none":
-        raise ValueError(f"flax_to_torch: the torch port has the paper's network only "
-                         f"(NetworkConfig.base='none'), got base={config.base!r}")
     enc_p, score_p = params["encoder"]["params"], params["score"]["params"]
     dim = int(np.shape(score_p["out"]["kernel"])[-1]) if dim is None else dim
     encoder, score = SetEncoder(config, dim), ScoreNet(config, dim)
@@ -418,7 +465,7 @@ def flax_to_torch(params: dict, config: NetworkConfig, dim: Optional[int] = None
         _load_dense(score.out, score_p["out"])
     for module in (encoder, score):
         module.eval().requires_grad_(False)
-    return Networks(encoder, score)
+    return Networks(encoder, score, config.base)
 
 
 # --------------------------------------------------------------------------------------------
@@ -556,9 +603,12 @@ def guidance_displacement(config: GuidanceConfig, grad: torch.Tensor, loglik: to
     return step * torch.clamp(cap / torch.clamp(norm, min=1e-30), max=1.0)
 
 
-def dps_gradient(score_net: ScoreNet, loglik: Callable, y: torch.Tensor, x: torch.Tensor,
-                 t: torch.Tensor, var: torch.Tensor, code: torch.Tensor):
+def dps_gradient(score_net: Callable, loglik: Callable, y: torch.Tensor, x: torch.Tensor,
+                 t: torch.Tensor, var: torch.Tensor, code):
     """Prior score, DPS gradient ``d/dx log p(y | x + var s(x))`` and that log-likelihood.
+
+    score_net: ``(x, t, code) -> (N, d)``, a :class:`ScoreNet` or :func:`prior_score` bound to its
+    networks; code: its context.
 
     ``x (N, d)`` -> ``(score (N, d), grad (N, d), loglik (N,))``, one backward pass through the
     score net (particles are independent, so the gradient of the sum is every particle's own).
@@ -577,7 +627,8 @@ def make_em_step(nets: Networks, problem: TorchProblem, config: CSFConfig) -> Ca
     Returns ``step(x (N, d), y (m,), code (C,), t, var, g2dt, noise_scale, noise_on, guide,
     eps (N, d)) -> x (N, d)``, the scalars 0-d tensors.
     """
-    score_net, loglik, guidance = nets.score, problem.loglik, config.guidance
+    score_net, loglik, guidance = functools.partial(prior_score, nets), problem.loglik, \
+        config.guidance
 
     def step(x, y, code, t, var, g2dt, noise_scale, noise_on, guide, eps):
         if guidance.mode == "none":
@@ -633,23 +684,34 @@ def kalman_tweedie(problem: TorchProblem, y: torch.Tensor, x0_hat: torch.Tensor,
 def resample_posterior(loglik: Callable, y: torch.Tensor, x0_hat: torch.Tensor,
                        prior_precision: torch.Tensor, u: torch.Tensor, chol: torch.Tensor,
                        guide: torch.Tensor, z: torch.Tensor,
-                       gumbel: Optional[torch.Tensor]) -> torch.Tensor:
+                       gumbel: Optional[torch.Tensor], df: Optional[int] = None) -> torch.Tensor:
     """``csf_jax.guidance.resample_posterior``: one draw per particle of
     ``N(x_0; x0_hat, P) p(y | x_0)`` by importance resampling of K Laplace candidates
     ``u + chol^{-T} z``.
 
-    x0_hat, u: ``(N, d)``.  chol: ``(N, d, d)``.  z: ``(K, N, d)`` standard normal.  gumbel:
-    ``(K, N)`` standard Gumbel (the categorical draw is ``argmax(log_w + gumbel)``, as
-    ``jax.random.categorical``), or None for K = 1 (the Laplace draw itself). Returns ``(N, d)``.
+    x0_hat, u: ``(N, d)``.  chol: ``(N, d, d)``.  z: ``(K, N, d)`` standard normal, or Student-t
+    with ``df`` degrees of freedom (:func:`student_t`).  gumbel: ``(K, N)`` standard Gumbel (the
+    categorical draw is ``argmax(log_w + gumbel)``, as ``jax.random.categorical``), or None for
+    K = 1 (the Laplace draw itself). Returns ``(N, d)``.
     """
     cand = u + torch.linalg.solve_triangular(chol.mT, z[..., None], upper=True)[..., 0]
     if gumbel is None:
         return cand[0]
+    if df is None:
+        log_q = -0.5 * torch.sum(z * z, -1)
+    else:
+        log_q = -0.5 * (df + 1.0) * torch.sum(torch.log1p(z * z / df), -1)
     diff = cand - x0_hat
     log_w = (-0.5 * torch.einsum("knd,de,kne->kn", diff, prior_precision, diff)
-             + guide * loglik(y, cand) + 0.5 * torch.sum(z * z, -1))
+             + guide * loglik(y, cand) - log_q)
     pick = torch.argmax(log_w + gumbel, 0)
     return torch.take_along_dim(cand, pick[None, :, None], 0)[0]
+
+
+def student_t(normals: torch.Tensor) -> torch.Tensor:
+    """``csf_jax.guidance.student_t``: ``normals (df + 1, ...)`` standard normal ->
+    ``g_0 / sqrt(mean(g_1^2 .. g_df^2))``, Student-t with df degrees of freedom."""
+    return normals[0] / torch.sqrt(torch.mean(normals[1:] * normals[1:], 0))
 
 
 def make_ancestral_step(nets: Networks, problem: TorchProblem, config: CSFConfig) -> Callable:
@@ -660,7 +722,7 @@ def make_ancestral_step(nets: Networks, problem: TorchProblem, config: CSFConfig
     noise_scale, guide, z_post (K, N, d), gumbel (K, N) or None, z_bridge (N, d)) -> (x, u)``, the
     scalars 0-d tensors (``first`` bool: start the Fisher scoring from ``x0_hat``).
     """
-    score_net, guidance = nets.score, config.guidance
+    score_net, guidance = functools.partial(prior_score, nets), config.guidance
 
     def step(x, u, first, y, code, precision, t, sigma, rho, noise_scale, guide, z_post, gumbel,
              z_bridge):
@@ -670,7 +732,7 @@ def make_ancestral_step(nets: Networks, problem: TorchProblem, config: CSFConfig
         u, chol = kalman_tweedie(problem, y, x0_hat, prior_precision, u, guide,
                                  guidance.iterations)
         x0 = resample_posterior(problem.loglik, y, x0_hat, prior_precision, u, chol, guide, z_post,
-                                gumbel if guidance.proposals > 1 else None)
+                                gumbel if guidance.proposals > 1 else None, guidance.proposal_df)
         return rho * x + (1.0 - rho) * x0 + noise_scale * z_bridge, u
 
     return step
@@ -755,10 +817,15 @@ def posterior_sample(step: Callable, sched: Schedule, x_init: torch.Tensor, y: t
 
 
 def draw_level(shape: tuple, proposals: int, generator: Optional[torch.Generator] = None,
-               dtype: torch.dtype = DTYPE):
+               dtype: torch.dtype = DTYPE, df: Optional[int] = None):
     """One level's ancestral draws for ``shape = (N, d)``: ``(z_post (K, N, d), gumbel (K, N) or
-    None, z_bridge (N, d))``; Gumbel as ``-log`` of a standard exponential."""
-    z_post = torch.randn((proposals, *shape), generator=generator, dtype=dtype)
+    None, z_bridge (N, d))``; ``z_post`` standard normal, or Student-t with ``df`` degrees of
+    freedom; Gumbel as ``-log`` of a standard exponential."""
+    if df is None:
+        z_post = torch.randn((proposals, *shape), generator=generator, dtype=dtype)
+    else:
+        z_post = student_t(torch.randn((df + 1, proposals, *shape), generator=generator,
+                                       dtype=dtype))
     gumbel = None
     if proposals > 1:
         exp = torch.empty((proposals, shape[0]), dtype=dtype).exponential_(generator=generator)
@@ -790,7 +857,8 @@ def ancestral_sample(step: Callable, sched: AncestralSchedule, x_init: torch.Ten
     x, u = x_init, x_init
     for l in range(sched.sigma.shape[0]):
         level = (_level_noise(noise, l) if noise is not None
-                 else draw_level(tuple(x.shape), sched.proposals, generator, x.dtype))
+                 else draw_level(tuple(x.shape), sched.proposals, generator, x.dtype,
+                                 sched.proposal_df))
         x, u = _ancestral_call(step, sched, l, x, u, y, code, precision, guide, level)
     return x
 
@@ -812,7 +880,7 @@ def filter_step(nets: Networks, problem: TorchProblem, step: Callable, sched,
         draw = lambda: torch.randn(ensemble.shape, generator=generator, dtype=ensemble.dtype)
         noise = StepNoise(draw(), draw(), None)
     prior_ens = problem.drift(ensemble) + problem.process_std * noise.prop
-    code = nets.encoder(prior_ens[:sched.encode_particles])
+    code = condition(nets, prior_ens, sched.encode_particles)
     sched = step_schedule(sched, problem, prior_ens, y, guide)
     if isinstance(sched, AncestralSchedule):
         x_init = prior_ens + sched.sigma_start * noise.x_init
@@ -830,11 +898,12 @@ def first_reverse_step(nets: Networks, step: Callable, sched, ensemble: torch.Te
     prior ensemble and the current state, with noise from torch's global generator: what
     ``torch.compile`` compiles on (e.g. to time the compilation). Returns the new state ``(N, d)``.
     """
-    code = nets.encoder(ensemble[:sched.encode_particles])
+    code = condition(nets, ensemble, sched.encode_particles)
     guide = torch.tensor(1.0, dtype=ensemble.dtype)
     if isinstance(sched, AncestralSchedule):
         precision = gaussian_precision(ensemble, sched.inflation)
-        level = draw_level(tuple(ensemble.shape), sched.proposals, dtype=ensemble.dtype)
+        level = draw_level(tuple(ensemble.shape), sched.proposals, dtype=ensemble.dtype,
+                           df=sched.proposal_df)
         return _ancestral_call(step, sched, 0, ensemble, ensemble, y, code, precision, guide,
                                level)[0]
     return _em_call(step, sched, 0, ensemble, y, code, guide, torch.randn_like(ensemble))

@@ -17,7 +17,7 @@ import os
 import sys
 
 from csf_jax import networks, problems
-from csf_jax.pretrained import DATASETS, TRAIN, export
+from csf_jax.pretrained import DATASETS, NETWORK, TRAIN, export
 from csf_jax.training import TrainConfig, generate, load, train
 from experiments._cli import int_list, nonnegative_int, particle_count, positive_int
 
@@ -41,9 +41,10 @@ def main(argv=None):
     p.add_argument("--targets", type=positive_int, default=None, help="x0 targets per set")
     p.add_argument("--set-sizes", type=int_list(2), default=None,
                    help="comma-separated encoder subset sizes, each at least 2")
-    p.add_argument("--base", choices=networks.BASES, default=networks.NetworkConfig().base,
+    p.add_argument("--base", choices=networks.BASES, default=None,
                    help="NetworkConfig.base: 'none' (the net is the whole score) or 'gaussian' "
-                        "(the ensemble's Gaussian score plus a learned correction)")
+                        "(the ensemble's Gaussian score plus a learned correction); default: the "
+                        "shipped model's recipe (csf_jax.pretrained.NETWORK), else 'none'")
     p.add_argument("--export", default=None, help="write the trained model here")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
@@ -65,7 +66,9 @@ def main(argv=None):
     data_dir = os.path.join(out, "data")
     generate(args.problem, dcfg, data_dir, verbose=not args.quiet)
     data = load(data_dir)
-    network = networks.NetworkConfig(base=args.base)
+    network = NETWORK.get(args.problem, networks.NetworkConfig())
+    if args.base is not None:
+        network = dataclasses.replace(network, base=args.base)
     params, meta = train(args.problem, data, os.path.join(out, "ckpt"), network=network,
                          config=tcfg, verbose=not args.quiet)
     final = meta["valid_loss"][-1] if meta["valid_loss"] else None

@@ -2,6 +2,7 @@
 (shipped pretrained prior), SF, EnKF and PF and writes ``results.json`` and the figures; plus CSF
 with the exact mixture prior, and the main job's resumption from its cache."""
 
+import dataclasses
 import json
 import os
 
@@ -140,16 +141,37 @@ def test_cli_runs_sf_on_fewer_runs_on_cpu_and_says_so(capsys):
 
 
 def test_table_configs_and_sf_shards():
-    """The tables' CSF config: the defaults with the problem's ``CSF_OVERRIDES`` (the triple well's
-    base inflation), ``--steps``/``--guidance`` on top; one SF run is split over the host devices
-    only when there are several (here one: this process started jax with one device)."""
+    """The tables' CSF config: the defaults with the problem's ``CSF_OVERRIDES`` (Cauchy's
+    heavy-tailed proposals), ``--steps``/``--guidance`` on top; SF's sampler keeps the base
+    inflation its cached runs were made with (``SF_SAMPLER_BASE``; the triple well's is CSF's); one SF
+    run is split over the host devices only when there are several (here one: this process
+    started jax with one device)."""
     assert run.csf_config("double_well") == CSFConfig()
-    tw = run.csf_config("triple_well", 7, "clipped")
-    assert tw.prior_inflation == run.CSF_OVERRIDES["triple_well"]["prior_inflation"] != \
+    cauchy = run.csf_config("cauchy", 7, "clipped")
+    assert (cauchy.guidance.proposal_df, cauchy.guidance.proposals) == (1, 32)
+    assert (cauchy.reverse_steps, cauchy.guidance.mode) == (7, "clipped")
+    assert run.sf_sampler_config("double_well").prior_inflation == 0.2 != \
         CSFConfig().prior_inflation
-    assert (tw.reverse_steps, tw.guidance.mode) == (7, "clipped")
+    tw = run.sf_sampler_config("triple_well", 7, "clipped")
+    assert tw == run.csf_config("triple_well", 7, "clipped")
     sf = csf_jax.SFConfig()
     assert run.sf_shards(2, sf) == 1
     assert run.sf_shards(1, sf) == (1 if jax.local_device_count() == 1 else
                                     max(k for k in range(1, jax.local_device_count() + 1)
                                         if sf.batch % k == 0))
+
+
+def test_cache_idents_follow_what_each_method_depends_on():
+    """A cached run is reused only for the config it was made with: CSF and CSF-G follow CSF's
+    config, SF its own sampler's, and EnKF neither."""
+    cfg = {"problem": {"dim": 1}, "particles": 10, "seed": 0, "csf_prior": "pretrained",
+           "csf_model_id": "m", "sf": {"lr": 1.0},
+           "csf": dataclasses.asdict(CSFConfig()),
+           "sf_sampler": dataclasses.asdict(run.sf_sampler_config("double_well"))}
+    moved = cfg | {"csf": dataclasses.asdict(CSFConfig(prior_inflation=0.5))}
+    ident = lambda m, c: run.method_ident(m, "double_well", c, run.REFERENCE)
+    for m in ("csf", "csf_gaussian"):
+        assert ident(m, cfg) != ident(m, moved)
+    for m in ("sf", "enkf", "reference"):
+        assert ident(m, cfg) == ident(m, moved)
+    assert ident("sf", cfg) != ident("sf", cfg | {"sf_sampler": cfg["csf"]})

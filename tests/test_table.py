@@ -69,3 +69,16 @@ def test_cache_fingerprint_ignores_fields_added_at_their_neutral_value():
     assert run._fingerprint(new) == run._fingerprint(old)
     other = {"sf": {"network": {"hidden": 64, "base": "gaussian"}}, "steps": [1, 2]}
     assert run._fingerprint(other) != run._fingerprint(old)
+
+
+def test_config_differences_name_guidance_fields():
+    """A column whose CSF config moves a ``GuidanceConfig`` field is listed with it (the Cauchy
+    column's heavy-tailed proposals); a default config is not listed."""
+    import dataclasses
+
+    from experiments import run
+
+    results = {name: {"config": {"csf": dataclasses.asdict(run.csf_config(name))}}
+               for name in ("double_well", "cauchy")}
+    assert table._config_differences(results) == [
+        "cauchy: guidance.proposals=32, guidance.proposal_df=1"]

@@ -20,7 +20,7 @@ import numpy as np  # noqa: E402
 import csf_jax  # noqa: E402
 from csf_jax import CSFConfig, NetworkConfig, networks, problems  # noqa: E402
 from csf_jax.guidance import GuidanceConfig, dps_gradient, guidance_displacement  # noqa: E402
-from csf_jax.guidance import kalman_tweedie  # noqa: E402
+from csf_jax.guidance import kalman_tweedie, student_t  # noqa: E402
 from csf_jax.inflation import adaptive_inflation  # noqa: E402
 from csf_jax.prior import gaussian_precision  # noqa: E402
 from csf_jax.sde import (bridge, diffusion_sq, inflated_time, marginal_std,  # noqa: E402
@@ -30,7 +30,8 @@ from experiments import torch_csf as tc  # noqa: E402
 
 SMALL = NetworkConfig(hidden=16, heads=2, blocks=1, code_dim=8, score_hidden=32, score_layers=2)
 DEFAULT = NetworkConfig()
-CONFIGS = {"small": SMALL, "default": DEFAULT}
+GAUSS = dataclasses.replace(SMALL, base="gaussian")  # the shipped models' base, small sizes
+CONFIGS = {"small": SMALL, "default": DEFAULT, "gaussian": GAUSS}
 D = 10
 CLIPPED = GuidanceConfig(mode="clipped")  # the Euler-Maruyama sampler with clipped DPS guidance
 
@@ -50,10 +51,13 @@ def _weights(config_name: str, dim: int = D):
     """``(config, jax params, torch Networks)``, random init (cached: init_params compiles)."""
     config = CONFIGS[config_name]
     params = networks.init_params(jax.random.key(3), config, dim)
+    if config.base == "gaussian":  # its output layer starts at zero: give the correction a value
+        out = params["score"]["params"]["out"]
+        out["kernel"] = 0.3 * jax.random.normal(jax.random.key(4), out["kernel"].shape)
     return config, params, tc.flax_to_torch(params, config)
 
 
-@pytest.fixture(scope="module", params=list(CONFIGS))
+@pytest.fixture(scope="module", params=["small", "default"])
 def nets(request):
     """``(config, jax params, torch Networks)`` for d = 10."""
     return _weights(request.param)
@@ -292,7 +296,9 @@ def _ancestral_draws(key_k, shape, csf: CSFConfig, dtype):
     def level(l):
         k_bridge, k_post = jax.random.split(jax.random.fold_in(k_rev, l))
         k_draw, k_pick = jax.random.split(k_post)
-        return (jax.random.normal(k_draw, (proposals, *shape), dtype),
+        df = csf.guidance.proposal_df
+        return (jax.random.normal(k_draw, (proposals, *shape), dtype) if df is None
+                else student_t(k_draw, df, (proposals, *shape), dtype),
                 jax.random.gumbel(k_pick, (proposals, shape[0]), dtype),
                 jax.random.normal(k_bridge, shape, dtype))
 
@@ -314,7 +320,8 @@ def _jax_filter_noise(key, num_steps, shape, csf: CSFConfig, dtype):
 
 def _as_float64(tnets):
     """Float64 copies of the torch modules (the cached float32 ones stay as they are)."""
-    return tc.Networks(*(copy.deepcopy(m).double() for m in tnets))
+    return tnets._replace(encoder=copy.deepcopy(tnets.encoder).double(),
+                          score=copy.deepcopy(tnets.score).double())
 
 
 def _ancestral_errors(name, config_name, csf: CSFConfig, num_steps, dtype, n=48, obs_shift=0.3):
@@ -399,6 +406,10 @@ def test_ancestral_filter_matches_with_injected_noise(name, config_name, csf, nu
 
 @pytest.mark.parametrize("name, config_name, csf, num_steps, tol", [
     ("double_well", "small", CSFConfig(), 2, 1e-10),
+    ("double_well", "gaussian", CSFConfig(), 2, 1e-10),
+    ("cauchy", "gaussian", CSFConfig(), 2, 1e-9),
+    ("cauchy", "gaussian", CSFConfig(guidance=GuidanceConfig(proposal_df=1, proposals=32)), 2,
+     1e-9),
     ("cubic10_corr", "default", CSFConfig(reverse_steps=10), 3, 1e-9),
     ("cubic10_corr", "default", CSFConfig(), 1, 1e-10),
     ("cubic10_corr", "default", CSFConfig(reverse_steps=50, guidance=GuidanceConfig(iterations=2),
@@ -461,13 +472,15 @@ def test_encoder_subset_matches_in_float64(x64):
     assert np.all(errors <= 1e-10), errors
 
 
-def test_adaptive_em_filter_matches():
+@pytest.mark.parametrize("config_name", ["small", "gaussian"])
+def test_adaptive_em_filter_matches(config_name):
     """The Euler-Maruyama sampler (clipped DPS) with the adaptive inflation, after a shock: the
-    torch port fed csf_jax's draws gives the same particles (the score times move with tau)."""
+    torch port fed csf_jax's draws gives the same particles (the score times move with tau), with
+    the paper's network and with a Gaussian base (the DPS gradient goes through its score too)."""
     name, n, L = "cubic10_corr", 48, 6
     csf = CSFConfig(reverse_steps=L, guidance=CLIPPED, adaptive_inflation=True)
     model, tp = problems.get(name), tc.torch_problem(name)
-    config, params, tnets = _weights("small")
+    config, params, tnets = _weights(config_name)
     ens, y = _ensemble(n, scale=0.4), _obs(D, seed=3, shift=2.0, scale=0.4)
     assert float(adaptive_inflation(jnp.asarray(ens), jnp.asarray(y), model, 0.2,
                                     statistic="median")) > 1.0

@@ -204,14 +204,17 @@ def test_pretrained_for_wrong_dimension_fails_clearly():
 
 def test_shipped_models_were_trained_by_their_committed_recipe():
     """Every shipped model's recorded training config is ``csf_jax.pretrained.TRAIN`` of its
-    problem, so ``python -m experiments.make_pretrained`` remakes what ships (fields added to
-    TrainConfig after a model was made are read as their defaults)."""
+    problem and its network ``NETWORK``, so ``python -m experiments.make_pretrained`` remakes what
+    ships (fields added to TrainConfig after a model was made are read as their defaults); the
+    benchmark times that network."""
     import json
 
-    from csf_jax.pretrained import DATASETS, TRAIN
+    from csf_jax.pretrained import DATASETS, NETWORK, TRAIN
+    from experiments.bench import network
 
     defaults = json.loads(json.dumps(dataclasses.asdict(TrainConfig())))
     for name in DATASETS:
+        assert load_pretrained(name).network == NETWORK[name] == network(), name
         recorded = load_pretrained(name).meta["train"]
         expected = json.loads(json.dumps(dataclasses.asdict(TRAIN[name])))
         got = {k: recorded.get(k, defaults[k]) for k in expected}

@@ -63,8 +63,10 @@ class CSFConfig:
       ``sqrt(sigma_t^2 + tau^2)``, i.e. the prior is convolved with ``N(0, tau^2 I)`` (the score-based
       form of the ensemble filters' covariance inflation). 0 is the paper's sampler. A broader prior
       lets the likelihood pull the ensemble to a state the model deems (nearly) impossible, such
-      as the mirror well after an unmodelled shock. Default 0.2, the base of the adaptive
-      inflation (docs/ablation.md: fixed 0.5, fixed 0.2 and adaptive measured on four columns).
+      as the mirror well after an unmodelled shock. Default 0, the base of the adaptive inflation:
+      the exact Bayes update between surprises. The whole-score learned priors of earlier sessions
+      needed 0.2; with the Gaussian-base priors 0 is better in five of the seven columns
+      (docs/ablation.md).
     adaptive_inflation: choose the inflation per filter step from the innovation
       (``csf_jax.inflation.adaptive_inflation``): ``tau^2 = prior_inflation^2 + s``, with ``s > 0`` only
       when the observation is improbable under the prior ensemble (a shock), 0 otherwise.
@@ -89,7 +91,7 @@ class CSFConfig:
     guidance: GuidanceConfig = GuidanceConfig()
     assimilate_first: bool = True
     denoise_last: bool = True
-    prior_inflation: float = 0.2
+    prior_inflation: float = 0.0
     adaptive_inflation: bool = True
     inflation_threshold: float = 2.0
     inflation_max: float = 10.0
@@ -194,7 +196,7 @@ def ancestral_sample(params, prior: PriorScore, context, model: StateSpaceModel,
                                  config.guidance.iterations)
         k_bridge, k_post = jax.random.split(jax.random.fold_in(key, l_idx))
         x0 = resample_posterior(k_post, x0_hat, prior_precision, u, chol, loglik_fn, guide,
-                                config.guidance.proposals)
+                                config.guidance.proposals, config.guidance.proposal_df)
         rho, var = bridge(sigma, sigma_next)
         x = rho * x + (1.0 - rho) * x0 + jnp.sqrt(var) * jax.random.normal(k_bridge, x.shape, x.dtype)
         return (x, u), None

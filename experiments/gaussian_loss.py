@@ -1,0 +1,56 @@
+"""Validation loss of each shipped Gaussian-base prior against the ensemble's Gaussian alone.
+
+    python -m experiments.gaussian_loss [double_well cauchy ...]
+
+A Gaussian-base network (``NetworkConfig(base="gaussian")``) with its zero-initialised output layer
+is exactly the ensemble's Gaussian score, so its loss before training is the Gaussian's. This
+evaluates both on the validation batch ``experiments.train`` uses (the datasets of
+``python -m experiments.make_pretrained`` under ``runs/pretrained/<name>/data``; generated there
+if missing) and prints one line per model: how much the learned correction gained.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import sys
+
+import jax
+
+from csf_jax import networks
+from csf_jax.pretrained import DATASETS, NETWORK, TRAIN, load_pretrained
+from csf_jax.training import generate, load
+from csf_jax.training.train import eval_loss, make_batch
+
+
+def losses(name: str) -> tuple[float, float]:
+    """``(Gaussian's, shipped model's)`` validation loss of problem ``name``."""
+    data_dir = os.path.join("runs", "pretrained", name, "data")
+    generate(name, DATASETS[name], data_dir, verbose=False)
+    data, cfg, net = load(data_dir), TRAIN[name], NETWORK[name]
+    full = net.base == "gaussian"
+    valid = make_batch(data, dataclasses.replace(cfg, set_sizes=(max(cfg.set_sizes),)), 0,
+                       "valid", full)
+    key = jax.random.key(10_000 + cfg.seed)
+    untrained = networks.init_params(jax.random.key(cfg.seed), net, int(data.ensembles.shape[-1]))
+    ev = lambda p: float(eval_loss(p, valid[0], valid[1], key, *valid[2:], network=net,
+                                   t_min=cfg.t_min))
+    return ev(untrained), ev(load_pretrained(name).params)
+
+
+def main(argv=None):
+    names = (argv if argv is not None else sys.argv[1:]) or list(DATASETS)
+    for name in names:
+        if name not in DATASETS:
+            raise SystemExit(f"no shipped model for {name!r}; known: {', '.join(DATASETS)}")
+        if NETWORK[name].base != "gaussian":
+            raise SystemExit(f"{name}: the shipped model has no Gaussian base")
+    print("| model | Gaussian (untrained) | trained | trained / Gaussian |")
+    print("|---|---|---|---|")
+    for name in names:
+        gauss, trained = losses(name)
+        print(f"| {name} | {gauss:.5f} | {trained:.5f} | {trained / gauss:.5f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
