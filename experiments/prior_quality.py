@@ -29,7 +29,7 @@ from csf_jax.pretrained import DATASETS, MODEL_FOR, load_pretrained
 from csf_jax.prior import learned_prior, unconditional_prior
 from csf_jax.sde import marginal_std
 from csf_jax.training import generate, load
-from csf_jax.training.single import fit_unconditional
+from csf_jax.dsm import fit_unconditional
 from experiments._cli import nonnegative_int, positive_int
 
 # The model's own prior: Euler-Maruyama without guidance or inflation, L = 500, pinned (not the

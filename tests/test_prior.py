@@ -118,7 +118,7 @@ def test_single_ensemble_fit_learns_a_gaussian():
     """fit_unconditional on N(2, 0.5^2) data: the learned score at small noise points to the mean,
     and the training loss falls."""
     from csf_jax.prior import unconditional_prior
-    from csf_jax.training.single import fit_unconditional
+    from csf_jax.dsm import fit_unconditional
 
     config = networks.NetworkConfig(hidden=16, heads=2, blocks=1, code_dim=8, score_hidden=64)
     data = 2.0 + 0.5 * jax.random.normal(jax.random.key(0), (512, 1))

@@ -24,7 +24,7 @@ from csf_jax.filters.csf import CSFConfig, particle_sampler, sampler_start
 from csf_jax.filters.result import FilterResult, mark_nonfinite
 from csf_jax.prior import unconditional_prior
 from csf_jax.ssm import StateSpaceModel
-from csf_jax.training.single import dsm_fit
+from csf_jax.dsm import dsm_fit
 
 
 @dataclasses.dataclass(frozen=True)

@@ -2,7 +2,8 @@
 
 The from-scratch reference of the prior-quality study (paper Fig. 2b/3a) and the per-step training
 of the score-based filter (SF) baseline. A fit is one ``lax.scan`` over Adam steps; only the score
-net's variables are trained (the code is fixed at zero, the encoder is unused).
+net's variables are trained (the code is fixed at zero, the encoder is unused). A core module: the
+SF filter uses it online, so it sits below both ``csf_jax.filters`` and ``csf_jax.training``.
 """
 
 from __future__ import annotations
