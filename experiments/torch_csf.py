@@ -376,14 +376,20 @@ class GaussianBase(NamedTuple):
     cov: torch.Tensor
 
 
-def ensemble_moments(ensemble: torch.Tensor, jitter: float = 1e-6):
-    """``csf_jax.prior.ensemble_moments``: mean and ``C + floor I`` of ``ensemble (N, d)``."""
+def _sample_moments(ensemble: torch.Tensor, jitter: float):
+    """``csf_jax.prior._sample_moments``: mean ``(d,)``, sample covariance ``(d, d)`` and the floor
+    ``jitter * trace(C) / d + sqrt(tiny)`` of ``ensemble (N, d)``."""
     n, d = ensemble.shape
     mean = ensemble.mean(0)
     centred = ensemble - mean
     cov = centred.T @ centred / max(n - 1, 1)
-    floor = jitter * torch.trace(cov) / d + torch.finfo(ensemble.dtype).tiny ** 0.5
-    return mean, cov + floor * torch.eye(d, dtype=ensemble.dtype)
+    return mean, cov, jitter * torch.trace(cov) / d + torch.finfo(ensemble.dtype).tiny ** 0.5
+
+
+def ensemble_moments(ensemble: torch.Tensor, jitter: float = 1e-6):
+    """``csf_jax.prior.ensemble_moments``: mean and ``C + floor I`` of ``ensemble (N, d)``."""
+    mean, cov, floor = _sample_moments(ensemble, jitter)
+    return mean, cov + floor * torch.eye(ensemble.shape[-1], dtype=ensemble.dtype)
 
 
 def condition(nets: Networks, prior_ens: torch.Tensor, encode_particles: Optional[int]):
@@ -650,11 +656,8 @@ def gaussian_precision(ensemble: torch.Tensor, inflation: float = 0.0,
     """``csf_jax.prior.gaussian_precision``: ``(C + (inflation^2 + floor) I)^{-1}`` of the sample
     covariance C, ``floor = jitter * trace(C) / d + sqrt(tiny)``; ``ensemble (N, d)`` -> ``(d, d)``.
     """
-    n, d = ensemble.shape
-    centred = ensemble - ensemble.mean(0)
-    cov = centred.T @ centred / max(n - 1, 1)
-    eye = torch.eye(d, dtype=ensemble.dtype)
-    floor = jitter * torch.trace(cov) / d + torch.finfo(ensemble.dtype).tiny ** 0.5
+    _, cov, floor = _sample_moments(ensemble, jitter)
+    eye = torch.eye(ensemble.shape[-1], dtype=ensemble.dtype)
     chol = torch.linalg.cholesky_ex(cov + (inflation ** 2 + floor) * eye).L
     # csf_jax solves for the rows (cho_solve over the batch of eye's rows): the transpose of ours
     return torch.cholesky_solve(eye, chol).mT
