@@ -2,10 +2,12 @@
 
 Entry points:
   ``csf_jax.filter(trained, obs, ensemble, *, problem=..., key=...)``: the CSF online stage
-    (``trained``: a ``Pretrained``, the checked route; raw params; or None for the exact prior).
+    (``trained``: a ``TrainedPrior``, the checked route; raw params; or None for the exact prior).
   ``csf_jax.simulate(problem, key)``: truth and observations of a ``StateSpaceModel``.
   ``csf_jax.problems.get(name)``: the paper's problems.
   ``csf_jax.load_pretrained(name)``: the shipped trained prior of a problem.
+  ``csf_jax.train_prior(model, key)``: train a prior for any ``StateSpaceModel``; ``.save(path)``,
+    ``csf_jax.load_prior(path, model)``.
   ``csf_jax.score_filter``: the SF baseline (a score net trained online at every step).
   ``csf_jax.particle_filter`` / ``csf_jax.ensemble_kalman_filter`` / ``csf_jax.kalman_filter``.
   ``csf_jax.reference_filter``: the near-exact per-coordinate filter of the tables' reference row.
@@ -22,14 +24,19 @@ from csf_jax.metrics import rmse
 from csf_jax.networks import NetworkConfig, init_params
 from csf_jax.prior import PriorScore, exact_mixture_prior, gaussian_prior, learned_prior
 from csf_jax.pretrained import load_pretrained
-from csf_jax.trained import Pretrained
-from csf_jax.ssm import (ObservationNoise, StateSpaceModel, cauchy_noise, gaussian_noise,
-                         log_likelihood, propagate, shock_steps, simulate)
+from csf_jax.trained import Pretrained, TrainedPrior, load_prior
+from csf_jax.training import DatasetConfig, TrainConfig, train_prior
+from csf_jax.ssm import (ObservationNoise, ProcessNoise, StateSpaceModel, cauchy_noise,
+                         drop_observations, gaussian_noise, gaussian_noise_cov,
+                         gaussian_process_noise, log_likelihood, propagate, shock_steps, simulate)
 
 __version__ = "0.1.0"
 
 __all__ = ["CSFConfig", "FilterResult", "GuidanceConfig", "NetworkConfig", "ObservationNoise",
-           "Pretrained", "PriorScore", "ReferenceConfig", "SFConfig", "StateSpaceModel", "cauchy_noise", "ensemble_kalman_filter",
-           "exact_mixture_prior", "filter", "gaussian_noise", "gaussian_prior", "init_params", "kalman_filter",
+           "Pretrained", "PriorScore", "ProcessNoise", "TrainedPrior", "DatasetConfig", "TrainConfig",
+           "load_prior", "train_prior", "ReferenceConfig", "SFConfig",
+           "StateSpaceModel", "cauchy_noise", "drop_observations", "ensemble_kalman_filter",
+           "exact_mixture_prior", "filter", "gaussian_noise", "gaussian_noise_cov",
+           "gaussian_process_noise", "gaussian_prior", "init_params", "kalman_filter",
            "learned_prior", "load_pretrained", "log_likelihood", "metrics", "particle_filter", "problems",
            "propagate", "reference_filter", "rmse", "score_filter", "shock_steps", "simulate"]

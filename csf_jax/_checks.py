@@ -17,22 +17,40 @@ def is_concrete(*xs) -> bool:
     return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(xs))
 
 
-def check_finite(name: str, x) -> None:
-    """Raise ValueError naming the first non-finite entry of ``x``; no-op for tracers."""
+def check_finite(name: str, x, allow_nan: bool = False) -> None:
+    """Raise ValueError naming the first non-finite entry of ``x`` (with ``allow_nan``: the first
+    infinite one; NaN then means 'missing'); no-op for tracers."""
     if not is_concrete(x):
         return
     arr = np.asarray(x)
     if not np.issubdtype(arr.dtype, np.floating):
         return
-    bad = ~np.isfinite(arr)
+    bad = np.isinf(arr) if allow_nan else ~np.isfinite(arr)
     if bad.any():
         idx = tuple(int(i) for i in np.argwhere(bad)[0])
-        raise ValueError(f"{name} has {int(bad.sum())} non-finite value(s); first at index {idx}: "
+        what = "infinite value(s) (NaN marks a missing entry; inf is an error)" if allow_nan \
+            else "non-finite value(s)"
+        raise ValueError(f"{name} has {int(bad.sum())} {what}; first at index {idx}: "
                          f"{arr[idx]!r}")
 
 
+def check_missing_supported(name: str, obs, model) -> None:
+    """Refuse NaN (missing) observations for a noise that cannot marginalise them (no
+    ``ObservationNoise.marginal``); no-op for tracers (there such steps come out non-finite)."""
+    if model.obs_noise.marginal is not None or not is_concrete(obs):
+        return
+    if np.isnan(np.asarray(obs)).any():
+        raise ValueError(f"{name}: obs has missing (NaN) entries, but the observation noise "
+                         f"{model.obs_noise.name!r} has no marginal log-density to leave them out; "
+                         f"give ObservationNoise(marginal=...) or use a noise built by csf_jax "
+                         f"(gaussian_noise, gaussian_noise_cov, cauchy_noise)")
+
+
 def check_filter_inputs(obs, ensemble, model, *, name: str = "filter") -> tuple[int, int, int, int]:
-    """Check ``obs (K, m)`` and ``ensemble (N, d)`` against ``model``; return ``(K, m, N, d)``."""
+    """Check ``obs (K, m)`` and ``ensemble (N, d)`` against ``model``; return ``(K, m, N, d)``.
+
+    NaN in ``obs`` means 'not observed' (per step and coordinate); inf in ``obs`` and any
+    non-finite entry of ``ensemble`` are errors."""
     obs = jnp.asarray(obs)
     ensemble = jnp.asarray(ensemble)
     if obs.ndim != 2:
@@ -56,7 +74,8 @@ def check_filter_inputs(obs, ensemble, model, *, name: str = "filter") -> tuple[
     for label, x in (("obs", obs), ("ensemble", ensemble)):
         if not jnp.issubdtype(x.dtype, jnp.floating):
             raise TypeError(f"{name}: {label} must be a floating array, got dtype {x.dtype}")
-        check_finite(f"{name}: {label}", x)
+        check_finite(f"{name}: {label}", x, allow_nan=label == "obs")
+    check_missing_supported(name, obs, model)
     return K, m, N, d
 
 

@@ -137,7 +137,8 @@ def kalman_tweedie(x0_hat, prior_precision, loglik_fn, observe_fn, weight_fn, u_
     update); ``A^{-1}`` is the Laplace covariance of ``x_0 | x_t, y``.
 
     x0_hat: (N, d) prior Tweedie estimates.  prior_precision: (d, d) ``P^{-1}``, shared.
-    loglik_fn: ``u (d,) -> scalar``.  observe_fn: ``u (d,) -> (m,)``.  weight_fn: ``u (d,) -> (m,)``.
+    loglik_fn: ``u (d,) -> scalar``.  observe_fn: ``u (d,) -> (m,)``.  weight_fn: ``u (d,) -> (m,)``
+    per-coordinate weights, or ``(m, m)`` (a correlated noise's precision).
     u_init: (N, d) starting points (the previous reverse step's solution).  guide: scalar 0 or 1
     (0: no observation, ``u = x0_hat``, ``A = P^{-1}``).
     Returns ``(u (N, d), chol (N, d, d))``, ``chol`` lower-triangular with ``chol chol^T = A`` at the
@@ -147,12 +148,19 @@ def kalman_tweedie(x0_hat, prior_precision, loglik_fn, observe_fn, weight_fn, u_
         for _ in range(iterations):
             jac = jax.jacfwd(observe_fn)(u)
             grad = jax.grad(loglik_fn)(u)
-            chol = _linalg.cholesky(prior_precision + guide * (jac.T * weight_fn(u)) @ jac)
+            chol = _linalg.cholesky(prior_precision + guide * _weighted_gram(jac, weight_fn(u)))
             rhs = prior_precision @ (x0h - u) + guide * grad
             u = u + _linalg.cho_solve(chol, rhs)
         return u, chol
 
     return jax.vmap(one)(x0_hat, u_init)
+
+
+def _weighted_gram(jac, weight):
+    """``J^T W J`` for ``jac (m, d)`` and weights ``(m,)`` (diagonal W) or ``(m, m)``."""
+    if weight.ndim == 1:
+        return (jac.T * weight) @ jac
+    return jac.T @ weight @ jac
 
 
 def student_t(key, df: int, shape, dtype):

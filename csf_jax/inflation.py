@@ -25,20 +25,25 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from csf_jax.ssm import StateSpaceModel
+from csf_jax.ssm import StateSpaceModel, observed
 
 
 def innovation_statistic(prior_ens, y, model: StateSpaceModel, base: float = 0.0):
     """``(e^2 (m,), v (m,), g (m,))`` of the module docstring for ``prior_ens: (N, d)``, ``y: (m,)``.
 
-    ``v`` includes the fixed inflation ``base`` (``base^2 g``) and the noise's Gaussian stand-in
-    variance ``r = gaussian_std^2``.
+    ``v`` includes the fixed inflation ``base`` (``base^2 g``) and the noise's variance ``r`` (the
+    diagonal of ``ObservationNoise.cov``: ``gaussian_std^2`` unless a covariance is given). Missing
+    (NaN) entries of ``y`` get ``e^2 = 0``.
     """
     hx = jax.vmap(model.observe)(prior_ens)
     jac = jax.vmap(jax.jacfwd(model.observe))(prior_ens)  # (N, m, d)
     g = jnp.mean(jnp.sum(jac * jac, -1), 0)
-    r = jnp.asarray(model.obs_noise.gaussian_std, prior_ens.dtype) ** 2
-    e2 = jnp.square(y - hx.mean(0))
+    if model.obs_noise.covariance is None:
+        r = jnp.asarray(model.obs_noise.gaussian_std, prior_ens.dtype) ** 2
+    else:
+        r = jnp.diagonal(model.obs_noise.cov(y.shape[-1], prior_ens.dtype))
+    mask = observed(y)
+    e2 = jnp.where(mask, jnp.square(jnp.where(mask, y, 0.0) - hx.mean(0)), 0.0)
     v = hx.var(0) + r + base ** 2 * g
     return e2, v, g
 
@@ -61,13 +66,14 @@ def adaptive_inflation(prior_ens, y, model: StateSpaceModel, base: float = 0.0,
         raise ValueError(f"adaptive_inflation: statistic must be one of {STATISTICS}, got "
                          f"{statistic!r}")
     e2, v, g = innovation_statistic(prior_ens, y, model, base)
-    m = e2.shape[-1]
+    mask = observed(y)
+    m = jnp.sum(mask).astype(v.dtype)  # the observed entries; none: no inflation
     if statistic == "median":
-        votes = jnp.sum(e2 / v > 1.0 + threshold * jnp.sqrt(2.0))
-        s = jnp.median(jnp.maximum(0.0, (e2 - v) / g))
-        s = jnp.where(votes > m / 2, jnp.minimum(s, max_tau ** 2), 0.0)
+        votes = jnp.sum(mask & (e2 / v > 1.0 + threshold * jnp.sqrt(2.0)))
+        s = jnp.nanmedian(jnp.where(mask, jnp.maximum(0.0, (e2 - v) / g), jnp.nan))
+        s = jnp.where((votes > m / 2) & (m > 0), jnp.minimum(s, max_tau ** 2), 0.0)
         return jnp.sqrt(base ** 2 + s)
-    stat = lambda s: jnp.sum(e2 / (v + s * g))
+    stat = lambda s: jnp.sum(jnp.where(mask, e2 / (v + s * g), 0.0))
     surprised = stat(0.0) > m + threshold * jnp.sqrt(2.0 * m)
     lo, hi = jnp.log(jnp.asarray(1e-8, v.dtype)), jnp.log(jnp.asarray(max_tau ** 2, v.dtype))
 

@@ -13,17 +13,33 @@ from typing import Callable, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+
+from csf_jax import _linalg
 
 Array = jax.Array
 
 
+def observed(y: Array) -> Array:
+    """``(m,)`` bool: the entries of ``y (m,)`` that were observed (NaN marks a missing entry)."""
+    return ~jnp.isnan(y)
+
+
+def _masked_cov(cov: Array, mask: Array) -> Array:
+    """``cov (m, m)`` with every row and column of a missing entry replaced by the identity's:
+    block diagonal in (observed, missing), so solves with it act on the observed block alone."""
+    both = mask[:, None] & mask[None, :]
+    return jnp.where(both, cov, jnp.eye(cov.shape[-1], dtype=cov.dtype))
+
+
 class ObservationNoise(NamedTuple):
-    """An additive, coordinate-wise i.i.d. observation noise ``w``.
+    """An additive observation noise ``w``: i.i.d. per coordinate, or any user density.
 
     log_prob: residual ``(m,)`` -> scalar log-density (up to a constant).
-    sample: ``(key, shape)`` -> a draw of that shape.
+    sample: ``(key, shape)`` -> a draw of that shape (``shape[-1] = m``).
     gaussian_std: std of the Gaussian that the EnKF uses in its place (the noise's own std if
-      Gaussian; for Cauchy the Gaussian with the same central 68% interval).
+      Gaussian; for Cauchy the Gaussian with the same central 68% interval). Ignored where
+      ``covariance`` is given.
     fisher: the Fisher information of one coordinate's noise, ``E[(d log p(w) / dw)^2]``.
       None: ``1 / gaussian_std^2``. The curvature of CSF's Kalman guidance when ``weight`` is None.
     weight: optional ``residual (m,) -> (m,)``, the iteratively reweighted least-squares weights
@@ -31,6 +47,13 @@ class ObservationNoise(NamedTuple):
       curvature of the Gaussian that touches ``log p`` from below at the residual. For Cauchy
       ``2 / (scale^2 + w^2)``: an outlier gets a small weight, so the guidance does not chase it
       (with the Fisher information it would). None: the constant ``fisher_information``.
+    covariance: optional ``(m, m)`` covariance as a nested tuple (hashable): correlated noise. The
+      EnKF, the Kalman filter and CSF's Kalman guidance use it (its inverse is the guidance's
+      curvature); None: ``gaussian_std^2 I``.
+    marginal: optional ``(residual (m,), observed (m,) bool) -> scalar``, the log-density of the
+      observed entries alone (the others are marginalised out; their residuals are 0). Needed for
+      missing observations (NaN in ``obs``). The constructors here give it; a user noise without it
+      filters complete observations only.
     """
 
     name: str
@@ -39,30 +62,118 @@ class ObservationNoise(NamedTuple):
     gaussian_std: float
     fisher: Optional[float] = None
     weight: Optional[Callable[[Array], Array]] = None
+    covariance: Optional[tuple] = None
+    marginal: Optional[Callable[[Array, Array], Array]] = None
 
     @property
     def fisher_information(self) -> float:
         """The per-coordinate Fisher information (``fisher``, or ``1 / gaussian_std^2``)."""
         return float(self.fisher) if self.fisher is not None else 1.0 / self.gaussian_std ** 2
 
-    def curvature(self, residual: Array) -> Array:
-        """Per-coordinate curvature weights ``(m,)`` of the guidance at ``residual = y - h(x)``."""
+    def cov(self, m: int, dtype=jnp.float32) -> Array:
+        """The ``(m, m)`` covariance the Gaussian filters use: ``covariance``, or
+        ``gaussian_std^2 I``."""
+        if self.covariance is not None:
+            return jnp.asarray(self.covariance, dtype)
+        return jnp.asarray(self.gaussian_std, dtype) ** 2 * jnp.eye(m, dtype=dtype)
+
+    def gaussian_draws(self, key: Array, shape: tuple, dtype=jnp.float32) -> Array:
+        """Draws ``shape = (..., m)`` of ``N(0, cov)``: the EnKF's observation perturbations."""
+        z = jax.random.normal(key, shape, dtype)
+        if self.covariance is None:
+            return self.gaussian_std * z
+        return z @ _linalg.cholesky(self.cov(shape[-1], dtype)).T
+
+    def masked_log_prob(self, residual: Array, mask: Array) -> Array:
+        """``log p`` of the observed entries of ``residual (m,)`` (``mask (m,)`` bool; missing
+        residuals must be 0). Without ``marginal``: ``log_prob`` when every entry is observed,
+        NaN otherwise (the filter then reports the step as non-finite)."""
+        if self.marginal is not None:
+            return self.marginal(residual, mask)
+        return jnp.where(jnp.all(mask), self.log_prob(residual), jnp.nan)
+
+    def curvature(self, residual: Array, mask: Optional[Array] = None) -> Array:
+        """The curvature of the guidance at ``residual = y - h(x)``: per-coordinate weights
+        ``(m,)``, or the ``(m, m)`` precision of a noise with ``covariance``; 0 on missing entries
+        (``mask (m,)`` bool, default all observed)."""
+        m = residual.shape[-1]
+        mask = jnp.ones((m,), bool) if mask is None else mask
+        if self.covariance is not None and self.weight is None:
+            chol = _linalg.cholesky(_masked_cov(self.cov(m, residual.dtype), mask))
+            precision = _linalg.cho_solve(chol, jnp.eye(m, dtype=residual.dtype))
+            return jnp.where(mask[:, None] & mask[None, :], precision, 0.0)
         if self.weight is not None:
-            return self.weight(residual)
-        return jnp.full(residual.shape, self.fisher_information, residual.dtype)
+            w = self.weight(residual)
+        else:
+            w = jnp.full(residual.shape, self.fisher_information, residual.dtype)
+        return jnp.where(mask, w, 0.0)
+
+
+def _iid_noise(name: str, coord_log_prob: Callable[[Array], Array], sample, gaussian_std: float,
+               **extra) -> ObservationNoise:
+    """An i.i.d. noise from its one-coordinate log-density (elementwise ``(m,) -> (m,)``): the
+    joint is the sum, the marginal of the observed entries the sum over them."""
+
+    def log_prob(r):
+        return jnp.sum(coord_log_prob(r))
+
+    def marginal(r, mask):
+        return jnp.sum(jnp.where(mask, coord_log_prob(r), 0.0))
+
+    return ObservationNoise(name, log_prob, sample, float(gaussian_std), marginal=marginal, **extra)
 
 
 def gaussian_noise(std: float) -> ObservationNoise:
     """i.i.d. ``N(0, std^2)`` noise."""
     inv_var = 1.0 / std**2
 
-    def log_prob(r):
-        return -0.5 * inv_var * jnp.sum(r * r)
-
     def sample(key, shape):
         return std * jax.random.normal(key, shape)
 
-    return ObservationNoise("gaussian", log_prob, sample, float(std))
+    return _iid_noise("gaussian", lambda r: -0.5 * inv_var * r * r, sample, std)
+
+
+def covariance_tuple(cov, name: str, size: Optional[int] = None) -> tuple:
+    """A symmetric positive-definite matrix as a nested tuple of floats (hashable); clear errors."""
+    arr = np.array(cov, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[0] != arr.shape[1] or (size is not None and arr.shape[0] != size):
+        want = "square" if size is None else f"({size}, {size})"
+        raise ValueError(f"{name}: the covariance must be a {want} matrix, got shape {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise ValueError(f"{name}: the covariance has non-finite entries")
+    if not np.allclose(arr, arr.T, rtol=1e-10, atol=1e-12 * max(1.0, np.abs(arr).max())):
+        raise ValueError(f"{name}: the covariance must be symmetric")
+    if np.linalg.eigvalsh(arr).min() <= 0:
+        raise ValueError(f"{name}: the covariance must be positive definite (smallest eigenvalue "
+                         f"{np.linalg.eigvalsh(arr).min():.3g})")
+    return tuple(map(tuple, arr.tolist()))
+
+
+def gaussian_noise_cov(cov) -> ObservationNoise:
+    """Correlated Gaussian noise ``N(0, cov)``, ``cov: (m, m)`` symmetric positive definite.
+
+    Missing entries are marginalised exactly: the observed block of ``cov`` alone enters.
+    """
+    cov_t = covariance_tuple(cov, "gaussian_noise_cov")
+    cov_np = np.array(cov_t)
+    chol_np = np.linalg.cholesky(cov_np)
+    prec_np = np.linalg.inv(cov_np)
+
+    def log_prob(r):
+        return -0.5 * r @ jnp.asarray(prec_np, r.dtype) @ r
+
+    def marginal(r, mask):
+        r = jnp.where(mask, r, 0.0)
+        chol = _linalg.cholesky(_masked_cov(jnp.asarray(cov_np, r.dtype), mask))
+        return -0.5 * r @ _linalg.cho_solve(chol, r)
+
+    def sample(key, shape):
+        z = jax.random.normal(key, shape)
+        return z @ jnp.asarray(chol_np, z.dtype).T
+
+    std = float(np.sqrt(np.mean(np.diag(cov_np))))
+    return ObservationNoise("gaussian_cov", log_prob, sample, std, covariance=cov_t,
+                            marginal=marginal)
 
 
 def cauchy_noise(scale: float) -> ObservationNoise:
@@ -72,17 +183,46 @@ def cauchy_noise(scale: float) -> ObservationNoise:
     ``scale = 0.0544`` gives std 0.1 (see ``cauchy_matched_std``).
     """
 
-    def log_prob(r):
-        return -jnp.sum(jnp.log1p((r / scale) ** 2))
-
     def sample(key, shape):
         return scale * jax.random.cauchy(key, shape)
 
     def weight(r):
         return 2.0 / (scale ** 2 + r * r)
 
-    return ObservationNoise("cauchy", log_prob, sample, cauchy_matched_std(scale),
-                            fisher=1.0 / (2.0 * scale ** 2), weight=weight)
+    return _iid_noise("cauchy", lambda r: -jnp.log1p((r / scale) ** 2), sample,
+                      cauchy_matched_std(scale), fisher=1.0 / (2.0 * scale ** 2), weight=weight)
+
+
+class ProcessNoise(NamedTuple):
+    """An additive process noise ``v`` other than the default i.i.d. ``N(0, process_std^2)``.
+
+    sample: ``(key, shape (..., d)) -> draws of that shape``.
+    covariance: ``(d, d)`` as a nested tuple (hashable), or None if unknown: the Kalman filter needs
+      it; the ensemble filters only sample.
+    log_prob: optional ``v (d,) -> scalar`` log-density (up to a constant), for users' own methods.
+    """
+
+    name: str
+    sample: Callable[[Array, tuple], Array]
+    covariance: Optional[tuple] = None
+    log_prob: Optional[Callable[[Array], Array]] = None
+
+
+def gaussian_process_noise(cov) -> ProcessNoise:
+    """Correlated Gaussian process noise ``N(0, cov)``, ``cov: (d, d)`` symmetric positive definite."""
+    cov_t = covariance_tuple(cov, "gaussian_process_noise")
+    cov_np = np.array(cov_t)
+    chol_np = np.linalg.cholesky(cov_np)
+    prec_np = np.linalg.inv(cov_np)
+
+    def sample(key, shape):
+        z = jax.random.normal(key, shape)
+        return z @ jnp.asarray(chol_np, z.dtype).T
+
+    def log_prob(v):
+        return -0.5 * v @ jnp.asarray(prec_np, v.dtype) @ v
+
+    return ProcessNoise("gaussian_cov", sample, cov_t, log_prob)
 
 
 def cauchy_matched_std(scale: float) -> float:
@@ -124,7 +264,7 @@ def reflect_shock(key: Array, x: Array) -> Array:
 
 
 class StateSpaceModel(NamedTuple):
-    """A discrete-time state-space model with additive Gaussian process noise.
+    """A discrete-time state-space model with additive process and observation noise.
 
     Attributes:
       name: identifier.
@@ -133,12 +273,15 @@ class StateSpaceModel(NamedTuple):
       dt: the time step the dynamics were discretised with (informational).
       drift: ``x (d,) -> (d,)``, the deterministic map f (it includes ``x_k`` itself).
       observe: ``x (d,) -> (m,)``, the observation map h.
-      process_std: std of the i.i.d. Gaussian process noise v (per coordinate).
+      process_std: std of the i.i.d. Gaussian process noise v (per coordinate); ignored where
+        ``process_noise`` is given.
       obs_noise: the observation noise w.
       initial_truth: ``key -> (d,)``, draws ``x_0`` of the truth.
       initial_ensemble: ``(key, N) -> (N, d)``, the filters' initial ensemble.
       shock_times: ``(key, K) -> (K,)`` bool, the steps at which the truth is shocked.
       shock: ``(key, x (d,)) -> (d,)``, the truth right after a shock (applied after the dynamics).
+      process_noise: optional ``ProcessNoise`` (a full covariance, or any sampler); None: i.i.d.
+        ``N(0, process_std^2)``.
     """
 
     name: str
@@ -154,17 +297,49 @@ class StateSpaceModel(NamedTuple):
     initial_ensemble: Callable[[Array, int], Array]
     shock_times: Callable[[Array, int], Array] = no_shock_times
     shock: Callable[[Array, Array], Array] = reflect_shock
+    process_noise: Optional[ProcessNoise] = None
+
+
+def process_draws(model: StateSpaceModel, key: Array, shape: tuple, dtype=jnp.float32) -> Array:
+    """Draws of the process noise v, ``shape = (..., d)``, in ``dtype``."""
+    if model.process_noise is None:
+        return model.process_std * jax.random.normal(key, shape, dtype)
+    return model.process_noise.sample(key, shape).astype(dtype)
+
+
+def process_cov(model: StateSpaceModel, dtype=jnp.float32) -> Array:
+    """The ``(d, d)`` process-noise covariance (ValueError if a user sampler did not give one)."""
+    if model.process_noise is None:
+        return jnp.asarray(model.process_std, dtype) ** 2 * jnp.eye(model.dim, dtype=dtype)
+    if model.process_noise.covariance is None:
+        raise ValueError(f"model {model.name!r}: its process noise {model.process_noise.name!r} "
+                         f"has no covariance; give ProcessNoise(covariance=...)")
+    return jnp.asarray(model.process_noise.covariance, dtype)
+
+
+def is_isotropic(model: StateSpaceModel) -> bool:
+    """True if the process noise is the default i.i.d. ``N(0, process_std^2)``."""
+    return model.process_noise is None
 
 
 def log_likelihood(model: StateSpaceModel, y: Array, x: Array) -> Array:
-    """``log p(y | x)`` up to a constant for one particle: ``y: (m,)``, ``x: (d,)`` -> scalar."""
-    return model.obs_noise.log_prob(y - model.observe(x))
+    """``log p(y | x)`` up to a constant for one particle: ``y: (m,)``, ``x: (d,)`` -> scalar.
+
+    NaN entries of ``y`` are missing: only the observed entries enter (0 if none is observed).
+    """
+    return model.obs_noise.masked_log_prob(residual(model, y, x), observed(y))
+
+
+def residual(model: StateSpaceModel, y: Array, x: Array) -> Array:
+    """``y - h(x)`` with 0 at the missing (NaN) entries of ``y (m,)``; ``x: (d,)``."""
+    mask = observed(y)
+    return jnp.where(mask, jnp.where(mask, y, 0.0) - model.observe(x), 0.0)
 
 
 def propagate(model: StateSpaceModel, key: Array, ensemble: Array) -> Array:
     """Prior ensemble ``f(x_i) + v_i``: ``ensemble (N, d) -> (N, d)``, drift vmapped over particles."""
     mean = jax.vmap(model.drift)(ensemble)
-    return mean + model.process_std * jax.random.normal(key, mean.shape, mean.dtype)
+    return mean + process_draws(model, key, mean.shape, mean.dtype)
 
 
 def shock_steps(model: StateSpaceModel, key: Array, num_steps: int | None = None) -> Array:
@@ -186,7 +361,7 @@ def simulate(model: StateSpaceModel, key: Array, num_steps: int | None = None):
     k0, _, k_shock, k_proc, k_obs = jax.random.split(key, 5)
     x0 = model.initial_truth(k0)
     shocked = shock_steps(model, key, K)
-    v = model.process_std * jax.random.normal(k_proc, (K, model.dim))
+    v = process_draws(model, k_proc, (K, model.dim))
 
     def step(x, inputs):
         v_k, shocked_k, key_k = inputs
@@ -199,3 +374,12 @@ def simulate(model: StateSpaceModel, key: Array, num_steps: int | None = None):
     noise = model.obs_noise.sample(k_obs, (K, model.obs_dim))
     obs = jax.vmap(model.observe)(xs) + noise
     return truth, obs
+
+
+def drop_observations(key: Array, obs: Array, rate: float, *, whole_steps: float = 0.0) -> Array:
+    """``obs (K, m)`` with entries set to NaN (missing): each entry independently with probability
+    ``rate``, and each whole step with probability ``whole_steps`` (a step with no observation)."""
+    k_entry, k_step = jax.random.split(key)
+    drop = jax.random.bernoulli(k_entry, rate, obs.shape)
+    drop = drop | jax.random.bernoulli(k_step, whole_steps, obs.shape[:-1] + (1,))
+    return jnp.where(drop, jnp.nan, obs)

@@ -1,26 +1,42 @@
-"""A trained prior: parameters together with the network config and the problem they were made for.
+"""A trained prior: parameters together with the network config and the model they were made for.
 
-``Pretrained`` is what ``csf_jax.load_pretrained`` returns and what ``csf_jax.filter`` checks when
-given it whole: the filter takes the network config from it and refuses a problem, a ``network=``
-or a ``sigma_max`` it was not trained for, naming both sides. Raw parameter dicts still work, but
-nothing about them can be checked beyond their shapes.
+``TrainedPrior`` is what ``csf_jax.train_prior``, ``csf_jax.load_prior`` and
+``csf_jax.load_pretrained`` return and what ``csf_jax.filter`` checks when given it whole: the
+filter takes the network config from it and refuses a model, a ``network=`` or a ``sigma_max`` it
+was not trained for, naming both sides. Raw parameter dicts still work, but nothing about them can
+be checked beyond their shapes.
+
+On disk a trained prior is a folder: an orbax checkpoint of the parameters (``params/``) and
+``meta.json`` (model fingerprint, network and training configs, dataset id, validation history).
+``save`` writes one, ``load_prior`` reads one and checks it against the model it is meant for.
+
+A model is identified by its ``model_fingerprint``: name, dimensions, noise settings, and the values
+of its drift and observation map at four points of its own initial ensemble. A model with the same
+name but another drift, sensor or noise is refused.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
+import os
 from typing import NamedTuple, Optional
 
 import jax
+import jax.numpy as jnp
+import numpy as np
+import orbax.checkpoint as ocp
 
 from csf_jax import networks
+from csf_jax.ssm import StateSpaceModel
 
 
-class Pretrained(NamedTuple):
+class TrainedPrior(NamedTuple):
     """A trained prior: ``params`` for ``csf_jax.filter``, the ``network`` config they were made
-    with, and their ``meta`` record (``meta["problem"]`` and ``meta["dim"]``: the problem it was
-    trained for; also training configs, dataset id, validation history).
+    with, and their ``meta`` record (``meta["problem"]`` and ``meta["dim"]``: the model it was
+    trained for; ``meta["model"]``, where present, its ``model_fingerprint``; also training configs,
+    dataset id, validation history).
 
     serves: names of further problems it may filter besides ``meta["problem"]`` (a transfer, such
     as the double-well model on ``triple_well``). A pytree whose only leaves are ``params``, so it
@@ -31,6 +47,12 @@ class Pretrained(NamedTuple):
     network: networks.NetworkConfig
     meta: dict
     serves: tuple = ()
+
+    def save(self, directory: str) -> str:
+        """Write this prior to ``directory`` (replacing a model folder there); returns its path.
+        ``csf_jax.load_prior(directory, model)`` reads it back."""
+        export(directory, self.params, self.network, self.meta)
+        return os.path.abspath(directory)
 
     @property
     def problem(self) -> Optional[str]:
@@ -58,10 +80,64 @@ class _Static:
 
 
 jax.tree_util.register_pytree_with_keys(
-    Pretrained,
+    TrainedPrior,
     lambda p: (((jax.tree_util.GetAttrKey("params"), p.params),),
                (p.network, _Static(p.meta), tuple(p.serves))),
-    lambda aux, children: Pretrained(children[0], aux[0], aux[1].value, aux[2]))
+    lambda aux, children: TrainedPrior(children[0], aux[0], aux[1].value, aux[2]))
+
+# The name of earlier sessions (the shipped models' type); the same class.
+Pretrained = TrainedPrior
+
+
+PROBE_POINTS = 4
+
+
+@functools.lru_cache(maxsize=64)
+def model_fingerprint(model: StateSpaceModel) -> dict:
+    """What identifies ``model`` for a trained prior (JSON-ready): name, dimensions, noise settings,
+    and its drift and observation map at ``PROBE_POINTS`` points of its own initial ensemble
+    (``initial_ensemble(jax.random.key(0), 4)``, float32). Cached per model object."""
+    with jax.ensure_compile_time_eval():
+        x = jnp.asarray(model.initial_ensemble(jax.random.key(0), PROBE_POINTS), jnp.float32)
+        drift = np.asarray(jax.vmap(model.drift)(x), np.float64)
+        observe = np.asarray(jax.vmap(model.observe)(x), np.float64)
+    noise = model.obs_noise
+    process = ({"std": float(model.process_std)} if model.process_noise is None else
+               {"name": model.process_noise.name,
+                "covariance": None if model.process_noise.covariance is None
+                else [list(r) for r in model.process_noise.covariance]})
+    return {"name": model.name, "dim": int(model.dim), "obs_dim": int(model.obs_dim),
+            "process_noise": process,
+            "obs_noise": {"name": noise.name, "gaussian_std": float(noise.gaussian_std),
+                          "covariance": None if noise.covariance is None
+                          else [list(r) for r in noise.covariance]},
+            "probe": {"x": np.asarray(x, np.float64).tolist(), "drift": drift.tolist(),
+                      "observe": observe.tolist()}}
+
+
+def fingerprint_mismatch(found: dict, model: StateSpaceModel) -> Optional[str]:
+    """None if the fingerprint ``found`` (from a meta record) is ``model``'s; else what differs."""
+    own = model_fingerprint(model)
+    for field in ("name", "dim", "obs_dim", "process_noise", "obs_noise"):
+        if not _close(found.get(field), own[field]):
+            return f"{field}: trained {found.get(field)!r}, given {own[field]!r}"
+    for part in ("x", "drift", "observe"):
+        a, b = found.get("probe", {}).get(part), own["probe"][part]
+        if a is None or np.shape(a) != np.shape(b) or not np.allclose(a, b, rtol=1e-4, atol=1e-5):
+            what = {"x": "initial ensemble", "drift": "drift", "observe": "observation map"}[part]
+            return f"its {what} differs at the probe points"
+    return None
+
+
+def _close(a, b) -> bool:
+    """Equality of JSON-like values, floats to a relative 1e-6."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_close(a[k], b[k]) for k in a)
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_close(x, y) for x, y in zip(a, b))
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)) and not isinstance(a, bool):
+        return bool(np.isclose(a, b, rtol=1e-6, atol=0.0))
+    return a == b
 
 
 def _config_diff(given: networks.NetworkConfig, own: networks.NetworkConfig) -> str:
@@ -73,11 +149,11 @@ def _config_diff(given: networks.NetworkConfig, own: networks.NetworkConfig) -> 
 
 def unpack(trained, problem, network: Optional[networks.NetworkConfig],
            name: str = "csf_jax.filter"):
-    """``(params, network)`` for the filter: raw params pass through unchanged; a ``Pretrained``
-    is checked against ``problem`` (name and dim) and ``network``, and gives its own params and
-    network config (the filter then checks the sampler's ``sigma_max`` against it). Every refusal
-    is a one-line ValueError naming both sides."""
-    if not isinstance(trained, Pretrained):
+    """``(params, network)`` for the filter: raw params pass through unchanged; a ``TrainedPrior``
+    is checked against ``problem`` (name, dim, and its fingerprint where the prior records one) and
+    ``network``, and gives its own params and network config (the filter then checks the sampler's
+    ``sigma_max`` against it). Every refusal is a one-line ValueError naming both sides."""
+    if not isinstance(trained, TrainedPrior):
         return trained, network
     made_for = trained.problem
     allowed = (made_for,) + tuple(trained.serves)
@@ -88,7 +164,146 @@ def unpack(trained, problem, network: Optional[networks.NetworkConfig],
     if trained.dim is not None and trained.dim != problem.dim:
         raise ValueError(f"{name}: the trained prior was made for d={trained.dim}, but problem "
                          f"{problem.name!r} has d={problem.dim}")
+    found = trained.meta.get("model")
+    if found is not None and problem.name == made_for:
+        why = fingerprint_mismatch(found, problem)
+        if why is not None:
+            raise ValueError(f"{name}: the trained prior was made for another model named "
+                             f"{made_for!r} ({why}); train one for this model with "
+                             f"csf_jax.train_prior")
     if network is not None and network != trained.network:
         raise ValueError(f"{name}: network= differs from the trained prior's own network config "
                          f"({_config_diff(network, trained.network)}); leave network= out")
     return trained.params, trained.network
+
+
+def export(directory: str, params, network: networks.NetworkConfig, meta: dict) -> None:
+    """Write ``params`` (orbax) and ``meta.json`` to ``directory`` (replacing what is there).
+
+    ``meta`` must name the ``problem`` and its ``dim``; ``params`` are checked against
+    ``network`` and ``dim`` first, so an exported model always loads.
+    """
+    missing = [k for k in ("problem", "dim") if k not in meta]
+    if missing:
+        raise ValueError(f"export: meta must record {' and '.join(missing)} (the problem the "
+                         f"model was trained for)")
+    networks.check_params(params, network, int(meta["dim"]), name=f"export to {directory}: params")
+    directory = os.path.abspath(directory)
+    os.makedirs(directory, exist_ok=True)
+    with ocp.StandardCheckpointer() as ckpt:
+        ckpt.save(os.path.join(directory, "params"), params, force=True)
+    with open(os.path.join(directory, "meta.json"), "w") as f:
+        json.dump({**meta, "network": dataclasses.asdict(network)}, f, indent=1)
+
+
+def _read_meta(directory: str) -> tuple[dict, networks.NetworkConfig, int]:
+    """``(meta, network, dim)`` from ``directory/meta.json``; one-line errors naming the folder."""
+    path = os.path.join(directory, "meta.json")
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"model {directory}: no meta.json there (not a folder written by "
+                                f"csf_jax.pretrained.export)")
+    try:
+        with open(path) as f:
+            meta = json.load(f)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"model {directory}: meta.json cannot be read ({type(e).__name__}: {e})"
+                         ) from None
+    if not isinstance(meta, dict):
+        raise ValueError(f"model {directory}: meta.json must hold a JSON object")
+    for field in ("problem", "dim", "network"):
+        if field not in meta:
+            raise ValueError(f"model {directory}: meta.json has no {field!r} field")
+    try:
+        network = networks.NetworkConfig(**meta["network"])
+        dim = int(meta["dim"])
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"model {directory}: meta.json's network/dim fields are invalid ({e})"
+                         ) from None
+    return meta, network, dim
+
+
+def _stored_shapes(params_dir: str, directory: str):
+    """The parameter tree of shapes ``(ShapeDtypeStruct)`` saved in ``params_dir``."""
+    if not os.path.isdir(params_dir):
+        raise FileNotFoundError(f"model {directory}: its parameter folder {params_dir} is missing")
+    try:
+        with ocp.StandardCheckpointer() as ckpt:
+            item = ckpt.metadata(params_dir).item_metadata
+        if item is None:
+            raise ValueError("its array metadata (_METADATA) is missing or unreadable")
+        tree = item.tree
+        return jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), tree)
+    except Exception as e:  # noqa: BLE001  (orbax, tensorstore and JSON errors alike)
+        raise ValueError(f"model {directory}: the parameters in {params_dir} cannot be read "
+                         f"({type(e).__name__}: {_first_line(e)})") from None
+
+
+def _check_stored(shapes, network: networks.NetworkConfig, dim: int, directory: str) -> None:
+    """Refuse stored parameter shapes that ``meta.json``'s network config and dim do not build,
+    naming the folder and the field that differs."""
+    try:
+        stored_dim = networks.params_dim(shapes)
+    except (KeyError, TypeError, IndexError):
+        stored_dim = dim
+    if stored_dim != dim:
+        raise ValueError(f"model {directory}: meta.json says dim={dim}, but the stored parameters "
+                         f"were made for dim={stored_dim}")
+    try:
+        networks.check_params(shapes, network, dim, name="the stored parameters")
+    except ValueError as e:
+        guess = networks.mismatched_field(shapes, network, dim)
+        if guess is None:
+            raise ValueError(f"model {directory}: meta.json does not match the stored parameters "
+                             f"({e})") from None
+        field, value = guess
+        said = dim if field == "dim" else getattr(network, field)
+        where = "dim" if field == "dim" else f"network.{field}"
+        raise ValueError(f"model {directory}: meta.json says {where}={said}, but the stored "
+                         f"parameters were made with {field}={value}") from None
+
+
+def _first_line(error: Exception, limit: int = 120) -> str:
+    first = (str(error).strip().splitlines() or [""])[0]
+    return first if len(first) <= limit else first[:limit - 3] + "..."
+
+
+def load_dir(directory: str, serves: tuple = ()) -> TrainedPrior:
+    """Load a model written by ``export``.
+
+    Checks ``meta.json`` against the stored array shapes before restoring anything: a damaged or
+    inconsistent folder fails with one line naming it and the mismatching field.
+    serves: further problem names the model may filter (see ``Pretrained``).
+    """
+    directory = os.path.abspath(directory)
+    meta, network, dim = _read_meta(directory)
+    params_dir = os.path.join(directory, "params")
+    _check_stored(_stored_shapes(params_dir, directory), network, dim, directory)
+    target = networks._expected_params(network, dim)
+    try:
+        with ocp.StandardCheckpointer() as ckpt:
+            params = ckpt.restore(params_dir, target)
+    except Exception as e:  # noqa: BLE001
+        raise ValueError(f"model {directory}: the parameters in {params_dir} cannot be restored "
+                         f"({type(e).__name__}: {_first_line(e)})") from None
+    return TrainedPrior(jax.tree_util.tree_map(jnp.asarray, params), network, meta,
+                      tuple(serves))
+
+
+def load_prior(directory: str, model: Optional[StateSpaceModel] = None,
+               network: Optional[networks.NetworkConfig] = None) -> TrainedPrior:
+    """Load a trained prior written by ``TrainedPrior.save`` (or ``csf_jax.train_prior``).
+
+    model: the model it is meant to filter: refused (one-line ValueError) if the prior was made
+      for another name or dimension, or, where the folder records a fingerprint, for a model whose
+      drift, sensor or noise differ (``model_fingerprint``).
+    network: the network config expected; refused if the folder's differs.
+    A damaged or inconsistent folder fails with one line naming it and the field at fault.
+    """
+    prior = load_dir(directory)
+    where = f"load_prior({os.path.abspath(directory)})"
+    if model is not None:
+        unpack(prior, model, None, name=where)
+    if network is not None and network != prior.network:
+        raise ValueError(f"{where}: the folder's network differs from network= "
+                         f"({_config_diff(network, prior.network)})")
+    return prior

@@ -1,4 +1,5 @@
-"""Train the CSF prior (set encoder + conditional score net) for one problem.
+"""Train the CSF prior (set encoder + conditional score net) for one built-in problem: a thin
+command line over ``csf_jax.train_prior`` with the shipped models' recipes.
 
     python -m experiments.train double_well [--steps 4000] [--out runs/double_well]
         [--trajectories M] [--particles N] [--keep K] [--stride S] [--seed 0]
@@ -16,9 +17,11 @@ import dataclasses
 import os
 import sys
 
+import jax
+
 from csf_jax import networks, problems
-from csf_jax.pretrained import DATASETS, NETWORK, TRAIN, export
-from csf_jax.training import TrainConfig, generate, load, train
+from csf_jax.pretrained import DATASETS, NETWORK, TRAIN
+from csf_jax.training import TrainConfig, train_prior
 from experiments._cli import int_list, nonnegative_int, particle_count, positive_int
 
 
@@ -63,19 +66,17 @@ def main(argv=None):
                           ("targets_per_set", args.targets), ("set_sizes", args.set_sizes))
         if v is not None})
     out = args.out or os.path.join("runs", args.problem)
-    data_dir = os.path.join(out, "data")
-    generate(args.problem, dcfg, data_dir, verbose=not args.quiet)
-    data = load(data_dir)
     network = NETWORK.get(args.problem, networks.NetworkConfig())
     if args.base is not None:
         network = dataclasses.replace(network, base=args.base)
-    params, meta = train(args.problem, data, os.path.join(out, "ckpt"), network=network,
-                         config=tcfg, verbose=not args.quiet)
+    trained = train_prior(args.problem, jax.random.key(args.seed), directory=out, dataset=dcfg,
+                          config=tcfg, network=network, verbose=not args.quiet)
+    meta = trained.meta
     final = meta["valid_loss"][-1] if meta["valid_loss"] else None
     print(f"{args.problem}: {tcfg.steps} steps, {meta['seconds']:.0f} s training, final "
           f"validation loss {final}", file=sys.stderr)
     if args.export:
-        export(args.export, params, network, meta)
+        trained.save(args.export)
         print(f"exported to {args.export}", file=sys.stderr)
 
 

@@ -148,8 +148,8 @@ def test_bad_inputs_raise_clear_errors():
         csf_jax.filter(None, obs, ens[None], **kw)
     with pytest.raises(ValueError, match=r"shape \(K, m\)"):
         csf_jax.filter(None, obs[0], ens, **kw)
-    with pytest.raises(ValueError, match="non-finite"):
-        csf_jax.filter(None, obs.at[1, 2].set(jnp.nan), ens, **kw)
+    with pytest.raises(ValueError, match="infinite"):
+        csf_jax.filter(None, obs.at[1, 2].set(jnp.inf), ens, **kw)
     with pytest.raises(ValueError, match="non-finite"):
         csf_jax.filter(None, obs, ens.at[0, 0].set(jnp.inf), **kw)
     with pytest.raises(TypeError, match="key"):

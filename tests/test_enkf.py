@@ -98,7 +98,8 @@ def test_enkf_keys(small_case):
     (lambda o, e: (o, e[:, :1]), ValueError, "dim"),
     (lambda o, e: (o, e[None]), ValueError, r"\(N, d\)"),
     (lambda o, e: (o[None], e), ValueError, r"\(K, m\)"),
-    (lambda o, e: (o.at[3, 0].set(jnp.nan), e), ValueError, "non-finite"),
+    (lambda o, e: (o.at[3, 0].set(jnp.inf), e), ValueError, "infinite"),
+    (lambda o, e: (o, e.at[0, 1].set(jnp.nan)), ValueError, "non-finite"),
     (lambda o, e: (o, e.at[0, 1].set(jnp.inf)), ValueError, "non-finite"),
 ])
 def test_enkf_bad_inputs(small_case, change, error, match):

@@ -107,7 +107,7 @@ def test_to_model_is_cached_and_consistent():
     (np.zeros((5, 3)), ValueError, "obs_dim"),
     (np.zeros((2, 5, 2)), ValueError, r"\(K, m\)"),
     (np.zeros((0, 2)), ValueError, "at least one"),
-    (np.array([[0.0, 1.0], [np.nan, 0.0]]), ValueError, "non-finite"),
+    (np.array([[0.0, 1.0], [np.inf, 0.0]]), ValueError, "infinite"),
     (np.zeros((5, 2), dtype=np.int32), TypeError, "floating"),
 ])
 def test_kalman_bad_inputs(obs, error, match):

@@ -343,10 +343,11 @@ def test_integer_inputs_are_refused_by_name():
 
 @pytest.mark.parametrize("name", ["csf", "sf", "pf", "enkf"])
 def test_nonfinite_observation_under_jit_and_vmap_is_reported_from_its_step_on(name):
-    """Runs: clean, NaN at step 3, inf at step 2. Only the bad runs are flagged, from the bad step
-    on, with NaN means (the particle filter's would look finite again otherwise)."""
+    """Runs: clean, -inf at step 3, inf at step 2. Only the bad runs are flagged, from the bad step
+    on, with NaN means (the particle filter's would look finite again otherwise). NaN is a missing
+    observation, not a bad one (tests/test_missing.py)."""
     model, obs, ens = _data("double_well", particles=32, steps=5)
-    runs = jnp.stack([obs, obs.at[2, 0].set(jnp.nan), obs.at[1, 0].set(jnp.inf)])
+    runs = jnp.stack([obs, obs.at[2, 0].set(-jnp.inf), obs.at[1, 0].set(jnp.inf)])
     r = jax.jit(jax.vmap(lambda o: FILTERS[name](o, ens, model)))(runs)
     np.testing.assert_array_equal(r.finite, [[True] * 5, [True, True, False, False, False],
                                              [True, False, False, False, False]])
@@ -364,7 +365,7 @@ def test_kalman_and_concrete_calls():
     r = jax.jit(lambda o: csf_jax.kalman_filter(o, lg=lg))(obs)
     np.testing.assert_array_equal(r.finite, [True, False, False, False])
     model, good, ens = _data("double_well")
-    with pytest.raises(ValueError, match="obs has 1 non-finite value"):
-        csf_jax.particle_filter(good.at[0, 0].set(jnp.nan), ens, problem=model,
+    with pytest.raises(ValueError, match="obs has 1 infinite value"):
+        csf_jax.particle_filter(good.at[0, 0].set(jnp.inf), ens, problem=model,
                                 key=jax.random.key(2))
     assert csf_jax.FilterResult(jnp.zeros((2, 1)), jnp.zeros((2, 1))).finite is None

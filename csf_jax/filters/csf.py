@@ -40,7 +40,8 @@ from csf_jax.networks import NetworkConfig
 from csf_jax.prior import PriorScore, exact_mixture_prior, gaussian_precision, learned_prior
 from csf_jax.sde import (bridge, diffusion_sq, inflated_time, marginal_std, marginal_std_host,
                          noise_levels, reverse_grid, time_of_std)
-from csf_jax.ssm import StateSpaceModel, log_likelihood
+from csf_jax.ssm import (StateSpaceModel, is_isotropic, log_likelihood, observed, process_draws,
+                         residual)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -182,8 +183,10 @@ def ancestral_sample(params, prior: PriorScore, context, model: StateSpaceModel,
     eye = jnp.eye(x_init.shape[-1], dtype=x_init.dtype)
     loglik_fn = functools.partial(log_likelihood, model, y)
 
+    mask = observed(y)
+
     def weight_fn(u):
-        return model.obs_noise.curvature(y - model.observe(u)).astype(u.dtype)
+        return model.obs_noise.curvature(residual(model, y, u), mask).astype(u.dtype)
 
     def step(carry, inputs):
         x, u = carry
@@ -301,7 +304,7 @@ def _csf_scan(params, obs, ensemble, key, *, model: StateSpaceModel, prior: Prio
             jax.debug.callback(progress, k)
         k_prop, k_init, k_rev = jax.random.split(key_k, 3)
         centers = jax.vmap(model.drift)(ens)
-        prior_ens = centers + model.process_std * jax.random.normal(k_prop, ens.shape, ens.dtype)
+        prior_ens = centers + process_draws(model, k_prop, ens.shape, ens.dtype)
         context = prior.condition(params, centers, prior_ens, model.process_std)
         guide = jnp.where((k > 0) | config.assimilate_first, 1.0, 0.0).astype(ens.dtype)
         x_init, start = sampler_start(config, prior_ens, k_init, y, model, guide)
@@ -327,7 +330,7 @@ def csf_filter(params, obs, ensemble, *, problem: StateSpaceModel, key,
         see ``csf_jax.trained.unpack``), raw network parameters ``{"encoder": ..., "score": ...}``
         (only their shapes can be checked), or None for the exact Gaussian-mixture prior.
       obs: (K, m) observations ``y_1 .. y_K``; float, promoted with ``ensemble`` to their common
-        float dtype.
+        float dtype. NaN marks a missing entry (left out of the update); inf is an error.
       ensemble: (N, d) initial ensemble (time 0).
       problem: the ``StateSpaceModel`` (static: hashable).
       key: a ``jax.random.key``; same key, same result.
@@ -356,6 +359,10 @@ def csf_filter(params, obs, ensemble, *, problem: StateSpaceModel, key,
     if not isinstance(shards, int) or shards < 1 or ensemble.shape[-2] % shards:
         raise ValueError(f"csf_jax.filter: shards must be a positive int dividing the number of "
                          f"particles N={ensemble.shape[-2]}, got {shards!r}")
+    if prior.name == "exact_mixture" and not is_isotropic(problem):
+        raise ValueError(f"csf_jax.filter: the exact mixture prior needs i.i.d. process noise, but "
+                         f"model {problem.name!r} has process_noise {problem.process_noise.name!r}; "
+                         f"pass a trained prior or prior=csf_jax.gaussian_prior()")
     if prior.name == "learned":
         if params is None:
             raise ValueError("csf_jax.filter: a learned prior needs params (got None); pass trained "

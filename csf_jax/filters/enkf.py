@@ -2,8 +2,11 @@
 
 Each step propagates the ensemble, optionally inflates its anomalies, and moves every member by
 the sample Kalman gain ``K = C_xy (C_yy + R)^{-1}`` applied to its own perturbed innovation
-``y + e_i - h(x_i)``, ``e_i ~ N(0, R)``. ``R = gaussian_std^2 I`` from the model's observation
-noise (for non-Gaussian noise, its Gaussian stand-in). Exact in the linear-Gaussian limit N -> inf.
+``y + e_i - h(x_i)``, ``e_i ~ N(0, R)``. ``R`` is the model's observation-noise covariance
+(``ObservationNoise.cov``: its ``covariance``, else ``gaussian_std^2 I``, for non-Gaussian noise the
+Gaussian stand-in). Exact in the linear-Gaussian limit N -> inf. Missing (NaN) entries of ``y`` are
+left out: their innovations and predicted anomalies are zeroed and their rows and columns of ``R``
+replaced by the identity's, so the gain acts on the observed entries alone.
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ import numpy as np
 from csf_jax._checks import (check_filter_inputs, check_key, check_result_finite, is_concrete,
                              promote)
 from csf_jax.filters.result import FilterResult, mark_nonfinite
-from csf_jax.ssm import StateSpaceModel, propagate
+from csf_jax.ssm import StateSpaceModel, observed, propagate
 
 
 def ensemble_kalman_filter(obs, ensemble, *, problem: StateSpaceModel, key,
@@ -28,7 +31,7 @@ def ensemble_kalman_filter(obs, ensemble, *, problem: StateSpaceModel, key,
 
     Args:
       obs: (K, m) observations ``y_1 .. y_K``; float, promoted with ``ensemble`` to their common
-        float dtype.
+        float dtype. NaN marks a missing entry (left out of the update); inf is an error.
       ensemble: (N, d) ensemble at time 0.
       problem: the state-space model (static: a hashable NamedTuple).
       key: a JAX PRNG key; the same key gives the same result.
@@ -61,18 +64,20 @@ def enkf_analysis(key, forecast, y, model: StateSpaceModel):
     """Perturbed-observation update of ``forecast (N, d)`` on ``y (m,)``; returns ``(N, d)``.
 
     Sample covariances use N-1 denominators; the gain is applied through a Cholesky solve of
-    ``C_yy + R`` (never an explicit inverse).
+    ``C_yy + R`` (never an explicit inverse). NaN entries of ``y`` are missing (module docstring).
     """
-    n = forecast.shape[0]
+    n, m = forecast.shape[0], y.shape[0]
+    mask = observed(y)
+    both = mask[:, None] & mask[None, :]
     predicted = jax.vmap(model.observe)(forecast).astype(forecast.dtype)
     x_anom = forecast - forecast.mean(axis=0)
-    y_anom = predicted - predicted.mean(axis=0)
+    y_anom = jnp.where(mask, predicted - predicted.mean(axis=0), 0.0)
     c_xy = x_anom.T @ y_anom / (n - 1)
     c_yy = y_anom.T @ y_anom / (n - 1)
-    r_std = model.obs_noise.gaussian_std
-    S = c_yy + r_std**2 * jnp.eye(y.shape[0], dtype=forecast.dtype)
-    e = r_std * jax.random.normal(key, predicted.shape, forecast.dtype)
-    innovations = y + e - predicted
+    R = model.obs_noise.cov(m, forecast.dtype)
+    S = c_yy + jnp.where(both, R, jnp.eye(m, dtype=forecast.dtype))
+    e = model.obs_noise.gaussian_draws(key, predicted.shape, forecast.dtype)
+    innovations = jnp.where(mask, jnp.where(mask, y, 0.0) + e - predicted, 0.0)
     weights = jsl.cho_solve(jsl.cho_factor(S, lower=True), innovations.T)
     return forecast + (c_xy @ weights).T
 

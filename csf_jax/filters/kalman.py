@@ -1,7 +1,10 @@
 """The exact Kalman filter of a ``LinearGaussian`` model: the reference for the other filters.
 
-Each step predicts with ``A`` and ``Q = q_std^2 I`` and updates on ``y_{k+1}`` with ``H`` and
-``R = r_std^2 I``, starting from ``N(m0, p0_std^2 I)`` at time 0. The gain is computed with a
+Each step predicts with ``A`` and ``Q`` (``q_std^2 I`` unless the model gives a full ``Q``) and
+updates on ``y_{k+1}`` with ``H`` and ``R`` (``r_std^2 I`` unless given), starting from
+``N(m0, p0_std^2 I)`` at time 0. NaN entries of ``obs`` are missing: their rows of ``H`` and of the
+innovation are zeroed and their rows and columns of ``R`` replaced by the identity's, which is the
+exact update on the observed entries alone (a step with none is a pure forecast). The gain is computed with a
 Cholesky solve of the innovation covariance, and the covariance update uses the Joseph form so it
 stays symmetric positive semi-definite. Runs in float64 when ``jax_enable_x64`` is on and ``obs``
 is float64; otherwise in the dtype of ``obs``.
@@ -19,7 +22,7 @@ from csf_jax.problems.linear import LinearGaussian
 
 
 def kalman_filter(obs, *, lg: LinearGaussian) -> FilterResult:
-    """Filtered means and stds of ``x_1 .. x_K`` given ``obs (K, m) = y_1 .. y_K``.
+    """Filtered means and stds of ``x_1 .. x_K`` given ``obs (K, m) = y_1 .. y_K`` (NaN: missing).
 
     Returns ``FilterResult(mean (K, d), std (K, d), finite (K,))`` with
     ``std = sqrt(diag(P_{k|k}))``; no ensembles, no ESS. Use ``kalman_filter_cov`` for the full
@@ -36,12 +39,13 @@ def kalman_filter_cov(obs, lg: LinearGaussian):
     _check_obs(obs, lg)
     dtype = obs.dtype
     return _kalman_scan(obs, jnp.asarray(lg.A, dtype), jnp.asarray(lg.H, dtype),
-                        jnp.asarray(lg.q_std, dtype) ** 2, jnp.asarray(lg.r_std, dtype) ** 2,
+                        jnp.asarray(lg.process_cov(), dtype), jnp.asarray(lg.obs_cov(), dtype),
                         jnp.asarray(lg.m0, dtype), jnp.asarray(lg.p0_std, dtype) ** 2)
 
 
 def _check_obs(obs, lg: LinearGaussian) -> None:
-    """``obs`` must be a finite floating ``(K, m)`` array with ``m = lg.obs_dim`` and ``K >= 1``."""
+    """``obs`` must be a floating ``(K, m)`` array with ``m = lg.obs_dim``, ``K >= 1`` and no inf
+    (NaN: missing)."""
     if obs.ndim != 2:
         raise ValueError(f"kalman_filter: obs must have shape (K, m) = (steps, obs_dim), got "
                          f"{obs.shape}; use jax.vmap for batches of runs")
@@ -52,24 +56,28 @@ def _check_obs(obs, lg: LinearGaussian) -> None:
         raise ValueError(f"kalman_filter: obs must hold at least one step, got shape {obs.shape}")
     if not jnp.issubdtype(obs.dtype, jnp.floating):
         raise TypeError(f"kalman_filter: obs must be a floating array, got dtype {obs.dtype}")
-    check_finite("kalman_filter: obs", obs)
+    check_finite("kalman_filter: obs", obs, allow_nan=True)
 
 
 @jax.jit
-def _kalman_scan(obs, A, H, q_var, r_var, m0, p0_var):
-    """One ``lax.scan`` of predict/update steps. ``obs (K, m)``, ``A (d, d)``, ``H (m, d)``."""
+def _kalman_scan(obs, A, H, Q, R, m0, p0_var):
+    """One ``lax.scan`` of predict/update steps. ``obs (K, m)``, ``A, Q (d, d)``, ``H (m, d)``,
+    ``R (m, m)``."""
     d, m = A.shape[0], H.shape[0]
     eye_d, eye_m = jnp.eye(d, dtype=A.dtype), jnp.eye(m, dtype=A.dtype)
 
     def step(carry, y):
         mean, cov = carry
+        mask = ~jnp.isnan(y)
+        H_k = jnp.where(mask[:, None], H, 0.0)
+        R_k = jnp.where(mask[:, None] & mask[None, :], R, eye_m)
         mean = A @ mean
-        cov = A @ cov @ A.T + q_var * eye_d
-        S = H @ cov @ H.T + r_var * eye_m
-        gain = jsl.cho_solve(jsl.cho_factor(S, lower=True), H @ cov).T
-        mean = mean + gain @ (y - H @ mean)
-        J = eye_d - gain @ H
-        cov = J @ cov @ J.T + r_var * gain @ gain.T
+        cov = A @ cov @ A.T + Q
+        S = H_k @ cov @ H_k.T + R_k
+        gain = jsl.cho_solve(jsl.cho_factor(S, lower=True), H_k @ cov).T
+        mean = mean + gain @ jnp.where(mask, y - H @ mean, 0.0)
+        J = eye_d - gain @ H_k
+        cov = J @ cov @ J.T + gain @ R_k @ gain.T
         cov = 0.5 * (cov + cov.T)
         return (mean, cov), (mean, cov)
 

@@ -25,7 +25,7 @@ def particle_filter(obs, ensemble, *, problem: StateSpaceModel, key, return_ense
 
     Args:
       obs: (K, m) observations ``y_1 .. y_K``; float, promoted with ``ensemble`` to their common
-        float dtype.
+        float dtype. NaN marks a missing entry (left out of the update); inf is an error.
       ensemble: (N, d) equally weighted particles at time 0.
       problem: the state-space model (static: a hashable NamedTuple).
       key: a JAX PRNG key; the same key gives the same result.

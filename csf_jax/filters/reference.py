@@ -36,7 +36,7 @@ from jax.scipy.special import logsumexp
 
 from csf_jax._checks import check_filter_inputs, check_key, check_result_finite, promote
 from csf_jax.filters.result import FilterResult, mark_nonfinite
-from csf_jax.ssm import StateSpaceModel
+from csf_jax.ssm import StateSpaceModel, is_isotropic, observed
 
 
 class ReferenceConfig(NamedTuple):
@@ -66,6 +66,9 @@ def shock_probability(model: StateSpaceModel, num_steps: int, draws: int = 4096,
 
 def check_separable(model: StateSpaceModel, name: str = "reference_filter") -> None:
     """Refuse a model whose observation does not see each coordinate on its own (``y_i = h(x_i) + w_i``)."""
+    if not is_isotropic(model) or model.obs_noise.covariance is not None:
+        raise ValueError(f"{name}: needs i.i.d. process and observation noise (the model has a "
+                         f"structured process_noise or a noise covariance)")
     if model.obs_dim != model.dim:
         raise ValueError(f"{name}: needs obs_dim == dim (one observation per coordinate), got "
                          f"{model.obs_dim} and {model.dim}")
@@ -77,9 +80,12 @@ def check_separable(model: StateSpaceModel, name: str = "reference_filter") -> N
 
 
 def _coordinate_loglik(model: StateSpaceModel, y, particles):
-    """``(M, d)`` log p(y_j | x_j) of every particle of every coordinate (i.i.d. noise)."""
-    resid = y - jax.vmap(model.observe)(particles)
-    return jax.vmap(jax.vmap(lambda r: model.obs_noise.log_prob(r[None])))(resid)
+    """``(M, d)`` log p(y_j | x_j) of every particle of every coordinate (i.i.d. noise); 0 where
+    ``y_j`` is missing (NaN)."""
+    mask = observed(y)
+    resid = jnp.where(mask, y, 0.0) - jax.vmap(model.observe)(particles)
+    return jnp.where(mask, jax.vmap(jax.vmap(lambda r: model.obs_noise.log_prob(r[None])))(resid),
+                     0.0)
 
 
 def _resample_columns(key, candidates, log_w, m: int):
@@ -151,7 +157,7 @@ def reference_filter(obs, ensemble, *, problem: StateSpaceModel, key,
     """Run the per-coordinate reference filter.
 
     Args:
-      obs: (K, m) observations ``y_1 .. y_K``, m == d, ``y_i`` seeing only ``x_i``.
+      obs: (K, m) observations ``y_1 .. y_K``, m == d, ``y_i`` seeing only ``x_i``; NaN: missing.
       ensemble: (N, d) initial particles; the filter starts from ``config.particles`` of them per
         coordinate, drawn with replacement column by column (N = config.particles: used as is).
       problem: the state-space model (static).  key: a ``jax.random.key``.

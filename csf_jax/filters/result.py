@@ -17,10 +17,11 @@ class FilterResult(NamedTuple):
       ensembles: (K, N, d) posterior ensembles, or None unless ``return_ensembles=True``
         (the Kalman filter has no ensemble and always returns None).
       ess: (K,) effective sample size before resampling (particle filter only), else None.
-      finite: (K,) bool, False from the first step whose observation, mean or std is non-finite
-        on; mean and std are NaN there (``mark_nonfinite``). Concrete calls refuse non-finite
-        observations and raise on a non-finite mean (``check_finite=True``), so this matters under
-        ``jax.jit``/``jax.vmap``. None only for results built by hand.
+      finite: (K,) bool, False from the first step whose observation is infinite or whose mean or
+        std is non-finite on; mean and std are NaN there (``mark_nonfinite``). NaN observations
+        are missing, not bad. Concrete calls refuse infinite observations and raise on a
+        non-finite mean (``check_finite=True``), so this matters under ``jax.jit``/``jax.vmap``.
+        None only for results built by hand.
     """
 
     mean: jax.Array
@@ -33,12 +34,13 @@ class FilterResult(NamedTuple):
 def mark_nonfinite(result: FilterResult, obs) -> FilterResult:
     """Report non-finite steps of a filter run over ``obs (K, m)``; works under jit and vmap.
 
-    A step is bad if its observation, mean or std has a NaN or inf. From the first bad step on,
+    A step is bad if its observation has an inf (NaN is a missing entry) or its mean or std a NaN
+    or inf. From the first bad step on,
     ``finite`` is False and mean and std are NaN, so no filter (the particle filter's resampling
     can make later means finite again) returns plausible numbers after a bad input. Ensembles and
     ESS are left as computed.
     """
-    ok = (jnp.isfinite(obs).all(-1) & jnp.isfinite(result.mean).all(-1)
+    ok = (~jnp.isinf(obs).any(-1) & jnp.isfinite(result.mean).all(-1)
           & jnp.isfinite(result.std).all(-1))
     finite = jnp.cumsum(~ok) == 0
     nan = jnp.asarray(jnp.nan, result.mean.dtype)

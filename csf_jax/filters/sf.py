@@ -23,7 +23,7 @@ from csf_jax import _checks, networks
 from csf_jax.filters.csf import CSFConfig, particle_sampler, sampler_start
 from csf_jax.filters.result import FilterResult, mark_nonfinite
 from csf_jax.prior import unconditional_prior
-from csf_jax.ssm import StateSpaceModel
+from csf_jax.ssm import StateSpaceModel, process_draws
 from csf_jax.dsm import dsm_fit
 
 
@@ -81,7 +81,7 @@ def _sf_scan(obs, ensemble, key, *, model: StateSpaceModel, config: SFConfig, sa
             jax.debug.callback(progress, k)
         k_prop, k_fit, k_x, k_rev = jax.random.split(key_k, 4)
         centers = jax.vmap(model.drift)(ens)
-        prior_ens = centers + model.process_std * jax.random.normal(k_prop, ens.shape, ens.dtype)
+        prior_ens = centers + process_draws(model, k_prop, ens.shape, ens.dtype)
         sv, o, losses = dsm_fit(k_fit, prior_ens, sv, o, optimizer, config=net,
                                 steps=config.train_steps, batch=config.batch, t_min=sampler.t_min,
                                 shards=shards)
@@ -108,7 +108,7 @@ def score_filter(obs, ensemble, *, problem: StateSpaceModel, key, config: SFConf
 
     Args:
       obs: (K, m) observations ``y_1 .. y_K``; float, promoted with ``ensemble`` to their common
-        float dtype.
+        float dtype. NaN marks a missing entry (left out of the update); inf is an error.
       ensemble: (N, d) initial ensemble (time 0).
       problem: the ``StateSpaceModel`` (static: hashable).
       key: a ``jax.random.key``; it also initialises the score net. Same key, same result.

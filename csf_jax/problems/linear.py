@@ -1,7 +1,7 @@
 """A linear-Gaussian state-space model: the one case with an exact filter (Kalman) to test against.
 
-``x_{k+1} = A x_k + v_k``, ``v_k ~ N(0, q_std^2 I)``; ``y_{k+1} = H x_{k+1} + w_k``,
-``w_k ~ N(0, r_std^2 I)``; ``x_0 ~ N(m0, p0_std^2 I)``.
+``x_{k+1} = A x_k + v_k``, ``v_k ~ N(0, Q)``; ``y_{k+1} = H x_{k+1} + w_k``, ``w_k ~ N(0, R)``;
+``x_0 ~ N(m0, p0_std^2 I)``. ``Q = q_std^2 I`` and ``R = r_std^2 I`` unless full matrices are given.
 
 ``LinearGaussian`` holds the matrices as numpy float64 arrays, which is what the Kalman filter
 (``csf_jax.filters.kalman``) reads. ``to_model`` wraps it as a ``StateSpaceModel`` for the ensemble
@@ -12,13 +12,14 @@ and jitted filters reuse their compilations.
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple
+from typing import NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from csf_jax.ssm import StateSpaceModel, gaussian_noise
+from csf_jax.ssm import (StateSpaceModel, covariance_tuple, gaussian_noise, gaussian_noise_cov,
+                         gaussian_process_noise)
 
 
 class LinearGaussian(NamedTuple):
@@ -29,6 +30,8 @@ class LinearGaussian(NamedTuple):
       q_std: std of the isotropic process noise.   r_std: std of the isotropic observation noise.
       m0: (d,) mean of ``x_0``.   p0_std: isotropic std of ``x_0`` (for truth and filters alike).
       num_steps: default trajectory length K.   name: identifier.
+      Q: optional (d, d) process-noise covariance (then q_std is unused).
+      R: optional (m, m) observation-noise covariance (then r_std is unused).
     Properties ``dim`` (d) and ``obs_dim`` (m) are read off the matrices.
     """
 
@@ -40,6 +43,16 @@ class LinearGaussian(NamedTuple):
     p0_std: float
     num_steps: int
     name: str
+    Q: Optional[np.ndarray] = None
+    R: Optional[np.ndarray] = None
+
+    def process_cov(self) -> np.ndarray:
+        """``(d, d)``: ``Q``, or ``q_std^2 I``."""
+        return np.asarray(self.Q) if self.Q is not None else self.q_std ** 2 * np.eye(self.dim)
+
+    def obs_cov(self) -> np.ndarray:
+        """``(m, m)``: ``R``, or ``r_std^2 I``."""
+        return np.asarray(self.R) if self.R is not None else self.r_std ** 2 * np.eye(self.obs_dim)
 
     @property
     def dim(self) -> int:
@@ -69,12 +82,13 @@ def rotation_decay(dim: int, radius: float = 0.95, angle: float = 0.3) -> np.nda
 def linear_gaussian(dim: int = 2, obs_dim: int | None = None, *, q_std: float = 0.3,
                     r_std: float = 0.5, p0_std: float = 1.0, m0=None, A=None, H=None,
                     radius: float = 0.95, angle: float = 0.3, num_steps: int = 20,
-                    name: str | None = None) -> LinearGaussian:
+                    name: str | None = None, Q=None, R=None) -> LinearGaussian:
     """Build a ``LinearGaussian``.
 
     Defaults: ``A = rotation_decay(dim, radius, angle)`` (spectral radius 0.95), ``H`` observes the
     first ``obs_dim`` coordinates (``obs_dim = dim`` if None), ``m0 = ones(dim)`` so the prior mean
-    is not trivially zero. Pass ``A`` (d, d), ``H`` (m, d) or ``m0`` (d,) to override.
+    is not trivially zero. Pass ``A`` (d, d), ``H`` (m, d) or ``m0`` (d,) to override, and ``Q``
+    (d, d) or ``R`` (m, m) for correlated noise (symmetric positive definite).
     """
     A = rotation_decay(dim, radius, angle) if A is None else A
     A = np.array(A, dtype=np.float64)
@@ -94,8 +108,16 @@ def linear_gaussian(dim: int = 2, obs_dim: int | None = None, *, q_std: float = 
             raise ValueError(f"linear_gaussian: {label} must be positive and finite, got {v}")
     for arr in (A, H, m0):
         arr.setflags(write=False)
+    Q = None if Q is None else _frozen(np.array(covariance_tuple(Q, "linear_gaussian: Q", dim)))
+    R = None if R is None else _frozen(np.array(covariance_tuple(R, "linear_gaussian: R", obs_dim)))
     name = f"linear_gaussian_d{dim}_m{obs_dim}" if name is None else name
-    return LinearGaussian(A, H, float(q_std), float(r_std), m0, float(p0_std), int(num_steps), name)
+    return LinearGaussian(A, H, float(q_std), float(r_std), m0, float(p0_std), int(num_steps), name,
+                          Q, R)
+
+
+def _frozen(arr: np.ndarray) -> np.ndarray:
+    arr.setflags(write=False)
+    return arr
 
 
 def _as_tuple(x) -> tuple:
@@ -111,12 +133,15 @@ def to_model(lg: LinearGaussian) -> StateSpaceModel:
     return one model and a jitted filter compiles once per model.
     """
     return _build_model(_as_tuple(lg.A), _as_tuple(lg.H), float(lg.q_std), float(lg.r_std),
-                        _as_tuple(lg.m0), float(lg.p0_std), int(lg.num_steps), str(lg.name))
+                        _as_tuple(lg.m0), float(lg.p0_std), int(lg.num_steps), str(lg.name),
+                        None if lg.Q is None else _as_tuple(lg.Q),
+                        None if lg.R is None else _as_tuple(lg.R))
 
 
 @functools.lru_cache(maxsize=None)
 def _build_model(A: tuple, H: tuple, q_std: float, r_std: float, m0: tuple, p0_std: float,
-                 num_steps: int, name: str) -> StateSpaceModel:
+                 num_steps: int, name: str, Q: Optional[tuple] = None,
+                 R: Optional[tuple] = None) -> StateSpaceModel:
     """Build the model's closures (no shocks); matrices are cast to the particle's dtype."""
     A_np, H_np, m0_np = np.array(A), np.array(H), np.array(m0)
     dim, obs_dim = A_np.shape[0], H_np.shape[0]
@@ -135,5 +160,6 @@ def _build_model(A: tuple, H: tuple, q_std: float, r_std: float, m0: tuple, p0_s
 
     return StateSpaceModel(name=name, dim=dim, obs_dim=obs_dim, num_steps=num_steps, dt=1.0,
                            drift=drift, observe=observe, process_std=q_std,
-                           obs_noise=gaussian_noise(r_std), initial_truth=initial_truth,
-                           initial_ensemble=initial_ensemble)
+                           obs_noise=gaussian_noise(r_std) if R is None else gaussian_noise_cov(R),
+                           initial_truth=initial_truth, initial_ensemble=initial_ensemble,
+                           process_noise=None if Q is None else gaussian_process_noise(Q))

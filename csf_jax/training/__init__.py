@@ -2,5 +2,7 @@
 
 from csf_jax.training.data import Dataset, DatasetConfig, generate, load
 from csf_jax.training.train import TrainConfig, TrainState, train
+from csf_jax.training.fit import train_prior
 
-__all__ = ["Dataset", "DatasetConfig", "TrainConfig", "TrainState", "generate", "load", "train"]
+__all__ = ["Dataset", "DatasetConfig", "TrainConfig", "TrainState", "generate", "load", "train",
+           "train_prior"]

@@ -32,6 +32,7 @@ import numpy as np
 from csf_jax import problems
 from csf_jax.filters.pf import sir_step
 from csf_jax.ssm import simulate
+from csf_jax.trained import model_fingerprint
 
 
 @dataclasses.dataclass(frozen=True)
@@ -40,6 +41,8 @@ class DatasetConfig:
 
     trajectories: M.  particles: N of the recording PF.  keep: particles stored per ensemble.
     stride: record every stride-th step.  seed: data seed.  chunk: trajectories per jitted batch.
+    dtype: "float16" (the shipped models' datasets: half the disk) or "float32" (for states whose
+      magnitude or resolution float16 would not hold: it keeps 3 significant digits up to 65504).
     """
 
     trajectories: int = 1000
@@ -48,6 +51,7 @@ class DatasetConfig:
     stride: int = 1
     seed: int = 0
     chunk: int = 50
+    dtype: str = "float16"
 
     def __post_init__(self):
         for f in ("trajectories", "particles", "keep", "stride", "chunk"):
@@ -56,12 +60,28 @@ class DatasetConfig:
         if self.keep > self.particles:
             raise ValueError(f"DatasetConfig.keep ({self.keep}) cannot exceed particles "
                              f"({self.particles})")
+        if self.dtype not in ("float16", "float32"):
+            raise ValueError(f"DatasetConfig.dtype must be 'float16' or 'float32', got "
+                             f"{self.dtype!r}")
 
 
-def dataset_id(problem: str, config: DatasetConfig) -> str:
-    """A short hash naming the data: problem config + dataset config."""
-    text = json.dumps({"problem": problem, "problem_config": repr(problems.config(problem)),
-                       "dataset": dataclasses.asdict(config)}, sort_keys=True)
+def _config_record(config: DatasetConfig) -> dict:
+    """The dataset config as hashed: the default dtype is left out, so the ids of datasets made
+    before the field existed stay the same."""
+    record = dataclasses.asdict(config)
+    if record["dtype"] == "float16":
+        del record["dtype"]
+    return record
+
+
+def dataset_id(problem, config: DatasetConfig) -> str:
+    """A short hash naming the data: the problem (a registry name: its config; a model: its
+    ``model_fingerprint``) and the dataset config."""
+    if isinstance(problem, str):
+        head = {"problem": problem, "problem_config": repr(problems.config(problem))}
+    else:
+        head = {"problem": problem.name, "model": model_fingerprint(problem)}
+    text = json.dumps({**head, "dataset": _config_record(config)}, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
@@ -83,31 +103,35 @@ def rollout_priors(model, key, num_particles: int, keep: int, stride: int):
     return priors[stride - 1::stride]
 
 
-def generate(problem: str, config: DatasetConfig, directory: str, *, verbose: bool = True) -> str:
+def generate(problem, config: DatasetConfig, directory: str, *, verbose: bool = True) -> str:
     """Write (or finish) the dataset of ``problem`` under ``directory``; returns the .npy path.
 
-    Resumable: chunks recorded as done in ``meta.json`` are skipped.
+    problem: a ``StateSpaceModel``, or the name of a built-in problem.
+    Resumable: chunks recorded as done in ``meta.json`` are skipped. A directory holding another
+    problem's or config's dataset is refused.
     """
-    model = problems.get(problem)
+    model = problems.get(problem) if isinstance(problem, str) else problem
+    name = problem if isinstance(problem, str) else model.name
     os.makedirs(directory, exist_ok=True)
     path = os.path.join(directory, "ensembles.npy")
     meta_path = os.path.join(directory, "meta.json")
     ident = dataset_id(problem, config)
     steps = len(range(config.stride - 1, model.num_steps, config.stride))
     shape = (config.trajectories, steps, config.keep, model.dim)
-    meta = {"problem": problem, "dataset": dataclasses.asdict(config), "id": ident,
+    meta = {"problem": name, "dataset": dataclasses.asdict(config), "id": ident,
             "shape": list(shape), "chunks_done": 0}
     if os.path.exists(meta_path) and os.path.exists(path):
         with open(meta_path) as f:
             old = json.load(f)
         if old.get("id") != ident:
             raise ValueError(f"{directory} holds dataset {old.get('id')} ({old.get('problem')}, "
-                             f"{old.get('dataset')}), not {ident} ({problem}, "
+                             f"{old.get('dataset')}), not {ident} ({name}, "
                              f"{dataclasses.asdict(config)}); use another directory")
         meta = old
         data = np.lib.format.open_memmap(path, mode="r+")
     else:
-        data = np.lib.format.open_memmap(path, mode="w+", dtype=np.float16, shape=shape)
+        data = np.lib.format.open_memmap(path, mode="w+", dtype=np.dtype(config.dtype),
+                                         shape=shape)
     n_chunks = -(-config.trajectories // config.chunk)
     batch = jax.jit(jax.vmap(lambda k: rollout_priors(model, k, config.particles, config.keep,
                                                       config.stride)))
@@ -118,12 +142,12 @@ def generate(problem: str, config: DatasetConfig, directory: str, *, verbose: bo
         ks = keys[lo:hi]
         if hi - lo < config.chunk:  # pad the last chunk to keep one compiled shape
             ks = jnp.concatenate([ks, keys[: config.chunk - (hi - lo)]])
-        data[lo:hi] = np.asarray(batch(ks)[: hi - lo], dtype=np.float16)
+        data[lo:hi] = np.asarray(batch(ks)[: hi - lo], dtype=data.dtype)
         data.flush()
         meta["chunks_done"] = c + 1
         _atomic_json(meta_path, meta)
         if verbose:
-            print(f"\r[data {problem}] {hi}/{config.trajectories} trajectories "
+            print(f"\r[data {name}] {hi}/{config.trajectories} trajectories "
                   f"({(c + 1) / n_chunks:.0%}, {time.perf_counter() - t0:.0f} s)", end="",
                   file=sys.stderr, flush=True)
     if verbose:

@@ -1,0 +1,58 @@
+"""Run the tutorial page ``docs/tutorial.md``: its Python blocks, in order, as one script.
+
+    python -m experiments.tutorial [OUT]    # default docs/tutorial
+
+Writes the script to ``OUT/tutorial.py``, runs it with ``OUT`` as the working directory (the
+trained prior, its run folder and the figure land there) and saves what it printed to
+``OUT/output.txt``. ``tests/test_tutorial.py`` runs it in a temporary folder, so the page cannot go
+stale.
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+import re
+import subprocess
+import sys
+import time
+
+PAGE = pathlib.Path(__file__).resolve().parents[1] / "docs" / "tutorial.md"
+
+
+def code(page: pathlib.Path = PAGE) -> str:
+    """The page's ```python blocks, joined in order."""
+    blocks = re.findall(r"^```python\n(.*?)^```", page.read_text(), flags=re.S | re.M)
+    if not blocks:
+        raise ValueError(f"{page} has no ```python blocks")
+    return "\n\n".join(blocks)
+
+
+def run(out: str, page: pathlib.Path = PAGE) -> str:
+    """Run the tutorial in ``out``; returns its stdout. Raises CalledProcessError on failure."""
+    out_dir = pathlib.Path(out).resolve()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    script = out_dir / "tutorial.py"
+    script.write_text(code(page))
+    env = {**os.environ, "MPLBACKEND": "Agg"}
+    t0 = time.perf_counter()
+    done = subprocess.run([sys.executable, str(script)], cwd=out_dir, env=env, text=True,
+                          capture_output=True)
+    seconds = time.perf_counter() - t0
+    if done.returncode != 0:
+        raise subprocess.CalledProcessError(done.returncode, done.args, done.stdout,
+                                            done.stderr[-4000:])
+    (out_dir / "output.txt").write_text(done.stdout + f"[{seconds:.0f} s]\n")
+    return done.stdout
+
+
+def main(argv=None):
+    argv = sys.argv[1:] if argv is None else argv
+    out = argv[0] if argv else str(PAGE.parent / "tutorial")
+    t0 = time.perf_counter()
+    print(run(out), end="")
+    print(f"tutorial ran in {time.perf_counter() - t0:.0f} s; outputs in {out}")
+
+
+if __name__ == "__main__":
+    main()
