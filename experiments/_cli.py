@@ -57,3 +57,12 @@ def name_list(known, what: str):
 
     parse.__name__ = f"{what} list"
     return parse
+
+
+def write_page(path: str, lines) -> str:
+    """Write markdown ``lines`` to ``path`` (one per line), print the page and return its text."""
+    text = "\n".join(lines) + "\n"
+    with open(path, "w") as f:
+        f.write(text)
+    print(text)
+    return text

@@ -23,6 +23,7 @@ import numpy as np
 
 import csf_jax
 from csf_jax import problems
+from experiments._cli import write_page
 from experiments.run import _errors, csf_config, machine, simulate_runs, summarize
 
 DEFAULT = ("double_well", "cauchy", "cubic10_indep", "cubic10_corr")
@@ -87,10 +88,7 @@ def main(argv=None):
                      f"{r['fit_s']:.0f}) | {r['own']:.4g} | {_fmt(r.get('table_csf'))} | "
                      f"{_fmt(r.get('table_pf'))} | {_fmt(r.get('table_enkf'))} | "
                      f"{_fmt(r.get('table_reference'))} |")
-    text = "\n".join(lines) + "\n"
-    with open(args.out, "w") as f:
-        f.write(text)
-    print(text)
+    write_page(args.out, lines)
 
 
 if __name__ == "__main__":

@@ -1,7 +1,9 @@
-"""The paper's problems, looked up by name: ``csf_jax.problems.get("double_well")``.
+"""The paper's problems and Lorenz-96, looked up by name: ``csf_jax.problems.get("double_well")``.
 
 Each name maps to a frozen config (defaults = the README's tables) and a builder; ``get(name,
-**overrides)`` replaces config fields, e.g. ``get("cubic10_indep", num_steps=50)``.
+**overrides)`` replaces config fields, e.g. ``get("cubic10_indep", num_steps=50)`` or
+``get("lorenz96", dim=1000)``. ``NAMES`` are the paper's seven problems (the table's columns);
+``BENCHMARKS`` the Lorenz-96 setups beyond the paper.
 """
 
 from __future__ import annotations
@@ -9,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 
 from csf_jax.problems.cubic import CubicConfig, cubic_problem
+from csf_jax.problems.lorenz96 import Lorenz96Config, lorenz96_problem
 from csf_jax.problems.wells import WellConfig, well_problem
 from csf_jax.ssm import StateSpaceModel
 
@@ -24,12 +27,19 @@ CONFIGS = {
 
 NAMES = tuple(CONFIGS)
 
+# Lorenz-96, the data-assimilation standard (F = 8, dt = 0.05, R = I), and its nonlinear sensor.
+BENCHMARKS = {
+    "lorenz96": Lorenz96Config(),
+    "lorenz96_arctan": Lorenz96Config(sensor="arctan", obs_std=0.05),
+}
+
 
 def config(name: str, **overrides):
     """The frozen config of problem ``name``, with ``overrides`` applied."""
-    if name not in CONFIGS:
-        raise KeyError(f"unknown problem {name!r}; known: {', '.join(NAMES)}")
-    return dataclasses.replace(CONFIGS[name], **overrides)
+    known = {**CONFIGS, **BENCHMARKS}
+    if name not in known:
+        raise KeyError(f"unknown problem {name!r}; known: {', '.join(known)}")
+    return dataclasses.replace(known[name], **overrides)
 
 
 def build(cfg) -> StateSpaceModel:
@@ -38,13 +48,16 @@ def build(cfg) -> StateSpaceModel:
         return well_problem(cfg)
     if isinstance(cfg, CubicConfig):
         return cubic_problem(cfg)
+    if isinstance(cfg, Lorenz96Config):
+        return lorenz96_problem(cfg)
     raise TypeError(f"no problem builder for config type {type(cfg).__name__}")
 
 
 def get(name: str, **overrides) -> StateSpaceModel:
-    """The ``StateSpaceModel`` of problem ``name`` (one of ``NAMES``), with config ``overrides``."""
+    """The ``StateSpaceModel`` of problem ``name`` (``NAMES`` or ``BENCHMARKS``), with config
+    ``overrides``."""
     return build(config(name, **overrides))
 
 
-__all__ = ["CONFIGS", "NAMES", "CubicConfig", "WellConfig", "build", "config", "get",
-           "cubic_problem", "well_problem"]
+__all__ = ["BENCHMARKS", "CONFIGS", "NAMES", "CubicConfig", "Lorenz96Config", "WellConfig", "build",
+           "config", "get", "cubic_problem", "lorenz96_problem", "well_problem"]

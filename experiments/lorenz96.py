@@ -1,0 +1,175 @@
+"""Lorenz-96 baselines: the tuning sweep of the localised filter, the global EnKF and climatology.
+
+    python -m experiments.lorenz96 [--runs 3] [--steps 1000] [--out docs/lorenz96.md]
+
+On the standard setup (d = 40, F = 8, dt = 0.05, every site observed every step, R = I, a perfect
+model) and on the arctan sensor (``lorenz96_arctan``, noise std 0.05): the LETKF over a grid of
+Gaspari-Cohn half-widths and multiplicative inflations with N = 40 and N = 20, the stochastic EnKF
+with N = 40 over inflations, and climatology (the attractor's mean as the estimate). RMSE is the
+time average of the per-step RMSE over sites, after the first ``burn_in`` steps (200), averaged over
+runs (the same runs for every filter: truth seed 0, ensemble seed 1). Each cell is cached under
+``runs/lorenz96`` (re-running resumes). Writes the tables and the best settings to ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import os
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import csf_jax
+from csf_jax import problems
+from csf_jax.filters.letkf import _letkf_scan
+from csf_jax.filters.result import mark_nonfinite
+from csf_jax.problems.lorenz96 import obs_sites
+from experiments._cli import write_page
+from experiments.run import machine
+
+RADII = (2.0, 4.0, 6.0, 8.0, 10.0, 15.0)
+INFLATIONS = (1.0, 1.01, 1.02, 1.05, 1.1)
+SETUPS = ("lorenz96", "lorenz96_arctan")
+CACHE = os.path.join("runs", "lorenz96")
+
+
+def data(name: str, runs: int, steps: int, particles: int):
+    """Truth ``(R, K+1, d)``, obs ``(R, K, m)``, initial ensembles ``(R, N, d)``, filter keys."""
+    model = problems.get(name, num_steps=steps)
+    truth, obs = jax.vmap(lambda k: csf_jax.simulate(model, k))(
+        jax.random.split(jax.random.key(0), runs))
+    ens = jax.vmap(lambda k: model.initial_ensemble(k, particles))(
+        jax.random.split(jax.random.key(1), runs))
+    return model, truth, obs, ens, jax.random.split(jax.random.key(2), runs)
+
+
+_DATA = {}
+
+
+def _data(name: str, runs: int, steps: int, particles: int):
+    """``data``, memoised (a sweep reuses one set of runs)."""
+    key = (name, runs, steps, particles)
+    if key not in _DATA:
+        _DATA[key] = data(name, runs, steps, particles)
+    return _DATA[key]
+
+
+def time_rmse(mean, truth, burn_in: int) -> float:
+    """Runs-averaged time average of the per-step RMSE over sites, after ``burn_in`` steps."""
+    per_step = jnp.sqrt(jnp.mean((mean - truth[:, 1:]) ** 2, -1))
+    return float(jnp.mean(per_step[:, burn_in:]))
+
+
+def cell(name: str, method: str, particles: int, runs: int, steps: int, **settings) -> dict:
+    """One (setup, method, N, settings) cell: cached RMSE and seconds per step."""
+    tag = "_".join([name, method, f"N{particles}", f"R{runs}", f"K{steps}"]
+                   + [f"{k}{v}" for k, v in sorted(settings.items())])
+    path = os.path.join(CACHE, tag + ".json")
+    if os.path.exists(path):
+        with open(path) as f:
+            return json.load(f)
+    cfg = problems.config(name, num_steps=steps)
+    model, truth, obs, ens, keys = _data(name, runs, steps, particles)
+    if method == "letkf":
+        run = _letkf_runner(name, model, cfg, settings["radius"])
+        args = (jnp.asarray(settings["inflation"], jnp.float32),)
+    elif method == "enkf":
+        run = _enkf_runner(model)
+        args = (jnp.asarray(settings["inflation"], jnp.float32),)
+    else:
+        raise ValueError(method)
+    t0 = time.perf_counter()
+    result = run(obs, ens, keys, *args)
+    rmse = time_rmse(result.mean, truth, cfg.burn_in) if bool(result.finite.all()) else float("inf")
+    out = {"rmse": rmse, "seconds_per_step": (time.perf_counter() - t0) / (runs * steps)}
+    os.makedirs(CACHE, exist_ok=True)
+    with open(path, "w") as f:
+        json.dump(out, f)
+    return out
+
+
+@functools.lru_cache(maxsize=None)
+def _letkf_runner(name, model, cfg, radius: float):
+    """One compiled LETKF over runs per (setup, radius); the inflation is an argument."""
+    loc = csf_jax.ring_localization(model.dim, obs_sites(cfg))
+    scan = functools.partial(_letkf_scan, problem=model, radius=float(radius), loc=loc,
+                             return_ensembles=False)
+    return jax.jit(jax.vmap(lambda o, e, k, infl: mark_nonfinite(scan(o, e, k, infl), o),
+                            in_axes=(0, 0, 0, None)))
+
+
+@functools.lru_cache(maxsize=None)
+def _enkf_runner(model):
+    """One compiled stochastic EnKF over runs; the inflation is an argument."""
+    return jax.jit(jax.vmap(lambda o, e, k, infl: csf_jax.ensemble_kalman_filter(
+        o, e, problem=model, key=k, inflation=infl, check_finite=False), in_axes=(0, 0, 0, None)))
+
+
+def climatology(name: str, runs: int, steps: int) -> float:
+    """RMSE of the attractor's mean (time and site average of long free runs) as the estimate."""
+    cfg = problems.config(name, num_steps=steps)
+    model, truth, *_ = data(name, runs, steps, 2)
+    long = jax.vmap(lambda k: csf_jax.simulate(problems.get(name, num_steps=5000), k)[0])(
+        jax.random.split(jax.random.key(99), 4))
+    return time_rmse(jnp.broadcast_to(long.mean(), truth[:, 1:].shape), truth, cfg.burn_in)
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(prog="python -m experiments.lorenz96", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--runs", type=int, default=3)
+    p.add_argument("--steps", type=int, default=1000)
+    p.add_argument("--out", default=os.path.join("docs", "lorenz96.md"))
+    args = p.parse_args(argv)
+    lines = ["# Lorenz-96 baselines", "",
+             f"Made by `python -m experiments.lorenz96 --runs {args.runs} --steps {args.steps}` on "
+             f"{machine().get('cpu')} (2 cores). Time-averaged RMSE after 200 burn-in steps, "
+             f"{args.runs} runs of {args.steps} steps; the same runs for every filter.", ""]
+    best = {}
+    for name in SETUPS:
+        cfg = problems.config(name)
+        lines += [f"## {name}: d = {cfg.dim}, sensor {cfg.sensor}, obs std {cfg.obs_std}", "",
+                  f"Climatology: {climatology(name, args.runs, args.steps):.3f}", ""]
+        for n in (40, 20):
+            lines += [f"LETKF, N = {n} (rows: Gaspari-Cohn half-width; columns: inflation)", "",
+                      "| radius | " + " | ".join(f"{i}" for i in INFLATIONS) + " |",
+                      "|---|" + "---|" * len(INFLATIONS)]
+            for radius in RADII:
+                row = []
+                for infl in INFLATIONS:
+                    r = cell(name, "letkf", n, args.runs, args.steps, radius=radius,
+                             inflation=infl)["rmse"]
+                    row.append(r)
+                    key = (name, "letkf", n)
+                    if r < best.get(key, (np.inf,))[0]:
+                        best[key] = (r, f"radius {radius}, inflation {infl}")
+                lines.append(f"| {radius} | " + " | ".join(f"{v:.3f}" for v in row) + " |")
+                print(f"{name} LETKF N={n} radius {radius}: "
+                      + " ".join(f"{v:.3f}" for v in row), file=sys.stderr, flush=True)
+            lines.append("")
+        row = []
+        for infl in INFLATIONS:
+            r = cell(name, "enkf", 40, args.runs, args.steps, inflation=infl)["rmse"]
+            row.append(r)
+            if r < best.get((name, "enkf", 40), (np.inf,))[0]:
+                best[(name, "enkf", 40)] = (r, f"inflation {infl}")
+        lines += ["Stochastic EnKF (global, perturbed observations), N = 40; columns: inflation",
+                  "", "| " + " | ".join(f"{i}" for i in INFLATIONS) + " |",
+                  "|" + "---|" * len(INFLATIONS),
+                  "| " + " | ".join(f"{v:.3f}" for v in row) + " |", ""]
+    lines += ["## Best settings", "", "| setup | filter | N | RMSE | settings |", "|---|---|---|---|---|"]
+    for (name, method, n), (r, s) in sorted(best.items()):
+        lines.append(f"| {name} | {method} | {n} | {r:.3f} | {s} |")
+    lines += ["", "Published on the standard setup (issue 14): climatology about 3.6; EnKF with "
+              "40 members about 0.22; DEnKF about 0.18; LETKF with localisation about 0.22 with a "
+              "handful of members; a particle filter needs thousands of members for about 0.26."]
+    write_page(args.out, lines)
+
+
+if __name__ == "__main__":
+    main()
