@@ -17,6 +17,7 @@ name but another drift, sensor or noise is refused.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 import json
@@ -92,11 +93,16 @@ Pretrained = TrainedPrior
 PROBE_POINTS = 4
 
 
-@functools.lru_cache(maxsize=64)
 def model_fingerprint(model: StateSpaceModel) -> dict:
     """What identifies ``model`` for a trained prior (JSON-ready): name, dimensions, noise settings,
     and its drift and observation map at ``PROBE_POINTS`` points of its own initial ensemble
-    (``initial_ensemble(jax.random.key(0), 4)``, float32). Cached per model object."""
+    (``initial_ensemble(jax.random.key(0), 4)``, float32). Computed once per model object; each
+    call returns a fresh copy."""
+    return copy.deepcopy(_fingerprint(model))
+
+
+@functools.lru_cache(maxsize=64)
+def _fingerprint(model: StateSpaceModel) -> dict:
     with jax.ensure_compile_time_eval():
         x = jnp.asarray(model.initial_ensemble(jax.random.key(0), PROBE_POINTS), jnp.float32)
         drift = np.asarray(jax.vmap(model.drift)(x), np.float64)
@@ -117,7 +123,7 @@ def model_fingerprint(model: StateSpaceModel) -> dict:
 
 def fingerprint_mismatch(found: dict, model: StateSpaceModel) -> Optional[str]:
     """None if the fingerprint ``found`` (from a meta record) is ``model``'s; else what differs."""
-    own = model_fingerprint(model)
+    own = _fingerprint(model)
     for field in ("name", "dim", "obs_dim", "process_noise", "obs_noise"):
         if not _close(found.get(field), own[field]):
             return f"{field}: trained {found.get(field)!r}, given {own[field]!r}"
