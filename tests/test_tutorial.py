@@ -15,8 +15,8 @@ def test_the_tutorial_runs_and_csf_is_within_1_1x_of_the_best(tmp_path, monkeypa
     monkeypatch.setenv("XLA_FLAGS", flags.strip())
     out = tutorial.run(str(tmp_path))
     assert "refused:" in out and "observation map differs" in out
-    rmse = {line.split()[0]: float(line.split()[-1]) for line in out.splitlines()
-            if "RMSE" in line}
+    rmse = {line.split(" RMSE")[0].strip(): float(line.split()[-1]) for line in out.splitlines()
+            if " RMSE " in line}
     assert set(rmse) == {"CSF", "PF", "EnKF"}
     assert rmse["CSF"] <= 1.1 * min(rmse["PF"], rmse["EnKF"])
     assert (tmp_path / "lorenz63_tutorial.png").stat().st_size > 10_000
@@ -24,6 +24,8 @@ def test_the_tutorial_runs_and_csf_is_within_1_1x_of_the_best(tmp_path, monkeypa
 
 
 def test_the_page_has_its_code():
+    assert "CSF, adaptive" in tutorial.code(extras=True)
+    assert "CSF, adaptive" not in tutorial.code()
     code = tutorial.code()
     for name in ("train_prior", "load_prior", ".save(", "drop_observations", "particle_filter",
                  "ensemble_kalman_filter", "savefig"):
