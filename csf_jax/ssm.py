@@ -75,7 +75,8 @@ class ObservationNoise(NamedTuple):
         ``gaussian_std^2 I``."""
         if self.covariance is not None:
             return jnp.asarray(self.covariance, dtype)
-        return jnp.asarray(self.gaussian_std, dtype) ** 2 * jnp.eye(m, dtype=dtype)
+        # squared in Python, then cast: the EnKF's R of earlier sessions to the last bit
+        return jnp.asarray(self.gaussian_std ** 2, dtype) * jnp.eye(m, dtype=dtype)
 
     def gaussian_draws(self, key: Array, shape: tuple, dtype=jnp.float32) -> Array:
         """Draws ``shape = (..., m)`` of ``N(0, cov)``: the EnKF's observation perturbations."""
