@@ -11,14 +11,17 @@ Entry points:
   ``csf_jax.score_filter``: the SF baseline (a score net trained online at every step).
   ``csf_jax.particle_filter`` / ``csf_jax.ensemble_kalman_filter`` / ``csf_jax.kalman_filter``.
   ``csf_jax.letkf``: the localised ensemble transform Kalman filter (Lorenz-96's baseline).
+  ``csf_jax.local_filter``: the local CSF, linear in d (a sparse Gaussian prior from local
+    regressions, a probability-flow sampler); ``LocalCSFConfig``.
   ``csf_jax.reference_filter``: the near-exact per-coordinate filter of the tables' reference row.
   ``csf_jax.gaussian_prior()``: CSF's prior as the ensemble's own Gaussian (``filter(..., prior=)``).
 """
 
 from csf_jax import metrics, problems
-from csf_jax.filters import (CSFConfig, FilterResult, LETKFConfig, Localization, ReferenceConfig,
-                             SFConfig, ensemble_kalman_filter, kalman_filter, letkf,
-                             particle_filter, reference_filter, ring_localization, score_filter)
+from csf_jax.filters import (CSFConfig, FilterResult, LETKFConfig, LocalCSFConfig, Localization,
+                             ReferenceConfig, SFConfig, ensemble_kalman_filter, kalman_filter,
+                             letkf, local_filter, particle_filter, reference_filter,
+                             ring_localization, score_filter)
 from csf_jax.filters.csf import csf_filter as filter  # noqa: A001  (the user-facing name)
 from csf_jax.guidance import GuidanceConfig
 from csf_jax.metrics import rmse
@@ -35,7 +38,8 @@ __version__ = "0.1.0"
 
 __all__ = ["CSFConfig", "FilterResult", "GuidanceConfig", "NetworkConfig", "ObservationNoise",
            "Pretrained", "PriorScore", "ProcessNoise", "TrainedPrior", "DatasetConfig", "TrainConfig",
-           "load_prior", "train_prior", "LETKFConfig", "Localization", "letkf", "ring_localization", "ReferenceConfig", "SFConfig",
+           "load_prior", "train_prior", "LETKFConfig", "LocalCSFConfig", "Localization", "letkf",
+           "local_filter", "ring_localization", "ReferenceConfig", "SFConfig",
            "StateSpaceModel", "cauchy_noise", "drop_observations", "ensemble_kalman_filter",
            "exact_mixture_prior", "filter", "gaussian_noise", "gaussian_noise_cov",
            "gaussian_process_noise", "gaussian_prior", "init_params", "kalman_filter",
