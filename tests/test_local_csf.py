@@ -133,6 +133,7 @@ def test_ancestral_step_draws_the_gaussian_posterior():
         np.testing.assert_allclose(np.cov(np.asarray(draws).T), cov, atol=0.05 * np.diag(cov).max())
 
 
+@pytest.mark.slow  # default-run budget (the suite took 9 min 52 s with it on 2 cores)
 def test_flow_step_is_the_square_root_transform():
     """Up the prior's probability-flow ODE and down the posterior's: for a Gaussian prior and a
     linear sensor, ``m_a + P_a^{1/2} Lambda^{1/2} (x - m)`` member by member (up to the top
@@ -151,7 +152,7 @@ def test_flow_step_is_the_square_root_transform():
         assert np.abs(coarse - exact).max() > 0.05 * np.abs(exact - mean).max()   # can fail
 
 
-@pytest.mark.slow  # default-run budget: the flow step test above checks the default sampler
+@pytest.mark.slow  # default-run budget
 @pytest.mark.parametrize("sampler", ["flow", "ancestral"])
 def test_filter_is_near_kalman_on_a_linear_ring(sampler):
     d, runs = 16, 4
