@@ -15,7 +15,6 @@ over the regressions' half-width b, the inflation and the float width. Cached un
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 
@@ -27,6 +26,7 @@ from csf_jax import problems
 from csf_jax.local_prior import dense_precision, local_statistics
 from experiments import lorenz96 as baselines
 from experiments._cli import write_page
+from experiments.lorenz96_csf import _cached
 from experiments.run import machine
 
 CACHE = os.path.join("runs", "lorenz96_ablation")
@@ -56,31 +56,29 @@ def analysis(mode: str, forecast, y, b: int, key):
 
 
 def cell(mode: str, b: int, dtype: str, inflation: float, runs: int, steps: int) -> float:
-    """Time-averaged RMSE after burn-in, runs averaged; cached."""
-    path = os.path.join(CACHE, f"{mode}_b{b}_{dtype}_infl{inflation}_R{runs}_K{steps}.json")
-    if os.path.exists(path):
-        with open(path) as f:
-            return json.load(f)["rmse"]
-    model, truth, obs, ens, keys = baselines.data("lorenz96", runs, steps, N)
-    dt = jnp.dtype(dtype)
+    """Time-averaged RMSE after burn-in, runs averaged (inf if a run diverged); cached."""
 
-    def run(obs, ens, key):
-        def step(e, inputs):
-            y, k = inputs
-            f = jax.vmap(model.drift)(e)
-            m = f.mean(0)
-            a = analysis(mode, m + inflation * (f - m), y, b, k)
-            return a, a.mean(0)
+    def compute():
+        model, truth, obs, ens, keys = baselines.data("lorenz96", runs, steps, N)
+        dt = jnp.dtype(dtype)
 
-        return jax.lax.scan(step, ens, (obs, jax.random.split(key, obs.shape[0])))[1]
+        def run(obs, ens, key):
+            def step(e, inputs):
+                y, k = inputs
+                f = jax.vmap(model.drift)(e)
+                m = f.mean(0)
+                a = analysis(mode, m + inflation * (f - m), y, b, k)
+                return a, a.mean(0)
 
-    means = jax.jit(jax.vmap(run))(obs.astype(dt), ens.astype(dt), keys)
-    per_step = jnp.sqrt(jnp.mean((means - truth[:, 1:]) ** 2, -1))
-    finite = bool(jnp.isfinite(per_step).all())
-    rmse = float(per_step[:, problems.config("lorenz96").burn_in:].mean()) if finite else float("inf")
-    os.makedirs(CACHE, exist_ok=True)
-    with open(path, "w") as f:
-        json.dump({"rmse": rmse}, f)
+            return jax.lax.scan(step, ens, (obs, jax.random.split(key, obs.shape[0])))[1]
+
+        means = jax.jit(jax.vmap(run))(obs.astype(dt), ens.astype(dt), keys)
+        finite = bool(jnp.isfinite(means).all())
+        burn_in = problems.config("lorenz96").burn_in
+        return {"rmse": baselines.time_rmse(means, truth, burn_in) if finite else float("inf")}
+
+    rmse = _cached(os.path.join(CACHE, f"{mode}_b{b}_{dtype}_infl{inflation}_R{runs}_K{steps}"),
+                   compute)["rmse"]
     print(f"{mode} b={b} {dtype} inflation {inflation}: {rmse:.4f}", file=sys.stderr, flush=True)
     return rmse
 

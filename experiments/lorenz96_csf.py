@@ -55,13 +55,15 @@ def config_for(sampler: str, inflation: float) -> LocalCSFConfig:
     return dataclasses.replace(LocalCSFConfig(), sampler=sampler, inflation=inflation)
 
 
-def _cached(tag: str, compute) -> dict:
-    path = os.path.join(CACHE, tag + ".json")
+def _cached(path: str, compute) -> dict:
+    """``compute()``'s JSON dict, kept at ``path + ".json"`` (written atomically: an interrupted run
+    leaves no half-written cell)."""
+    path = path + ".json"
     if os.path.exists(path):
         with open(path) as f:
             return json.load(f)
     out = compute()
-    os.makedirs(CACHE, exist_ok=True)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
     with open(path + ".tmp", "w") as f:
         json.dump(out, f)
     os.replace(path + ".tmp", path)
@@ -86,12 +88,12 @@ def csf_cell(name: str, sampler: str, inflation: float, runs: int, steps: int) -
         seconds = time.perf_counter() - t0
         per_step = jnp.sqrt(jnp.mean((result.mean - truth[:, 1:]) ** 2, -1))
         ok = bool(result.finite.all())
-        return {"rmse": float(per_step[:, cfg.burn_in:].mean()) if ok else float("inf"),
+        return {"rmse": baselines.time_rmse(result.mean, truth, cfg.burn_in) if ok else float("inf"),
                 "spread": float(jnp.sqrt(jnp.mean(result.std[:, cfg.burn_in:] ** 2))),
                 "seconds_per_step": seconds / (runs * steps),
                 "rmse_per_step": np.asarray(per_step.mean(0)).round(5).tolist()}
 
-    out = _cached(tag, compute)
+    out = _cached(os.path.join(CACHE, tag), compute)
     print(f"{name} CSF {sampler} inflation {inflation}: RMSE {out['rmse']:.4f}", file=sys.stderr,
           flush=True)
     return out
@@ -105,10 +107,9 @@ def pf_cell(name: str, runs: int, steps: int, particles: int = 1000) -> dict:
         model, truth, obs, ens, keys = baselines.data(name, runs, steps, particles)
         result = jax.jit(jax.vmap(lambda o, e, k: csf_jax.particle_filter(
             o, e, problem=model, key=k, check_finite=False)))(obs, ens, keys)
-        per_step = jnp.sqrt(jnp.mean((result.mean - truth[:, 1:]) ** 2, -1))
-        return {"rmse": float(per_step[:, cfg.burn_in:].mean())}
+        return {"rmse": baselines.time_rmse(result.mean, truth, cfg.burn_in)}
 
-    return _cached(f"{name}_pf_N{particles}_R{runs}_K{steps}", compute)
+    return _cached(os.path.join(CACHE, f"{name}_pf_N{particles}_R{runs}_K{steps}"), compute)
 
 
 def scaling_row(dim: int, steps: int) -> dict:
@@ -192,7 +193,7 @@ def scaling(dim: int, steps: int) -> dict:
         return json.loads(out.stdout.strip().splitlines()[-1])
 
     tag = f"scaling_d{dim}_K{steps}_{digest(LocalCSFConfig())}"
-    out = _cached(tag, compute)
+    out = _cached(os.path.join(CACHE, tag), compute)
     print(f"scaling d={dim}: {out['seconds_per_step']:.2f} s/step", file=sys.stderr, flush=True)
     return out
 
