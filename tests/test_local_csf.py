@@ -133,7 +133,7 @@ def test_ancestral_step_draws_the_gaussian_posterior():
         np.testing.assert_allclose(np.cov(np.asarray(draws).T), cov, atol=0.05 * np.diag(cov).max())
 
 
-@pytest.mark.slow  # default-run budget (the suite took 9 min 52 s with it on 2 cores)
+@pytest.mark.slow  # default-run budget (about 10 s; the suite is near its 10-minute limit)
 def test_flow_step_is_the_square_root_transform():
     """Up the prior's probability-flow ODE and down the posterior's: for a Gaussian prior and a
     linear sensor, ``m_a + P_a^{1/2} Lambda^{1/2} (x - m)`` member by member (up to the top
