@@ -36,14 +36,53 @@ def check_finite(name: str, x, allow_nan: bool = False) -> None:
 
 def check_missing_supported(name: str, obs, model) -> None:
     """Refuse NaN (missing) observations for a noise that cannot marginalise them (no
-    ``ObservationNoise.marginal``); no-op for tracers (there such steps come out non-finite)."""
-    if model.obs_noise.marginal is not None or not is_concrete(obs):
+    ``ObservationNoise.marginal``); no-op for tracers (there such steps come out non-finite). A
+    ``Likelihood`` always can: its entries are independent given the state."""
+    if getattr(model.obs_noise, "marginal", True) is not None or not is_concrete(obs):
         return
     if np.isnan(np.asarray(obs)).any():
         raise ValueError(f"{name}: obs has missing (NaN) entries, but the observation noise "
                          f"{model.obs_noise.name!r} has no marginal log-density to leave them out; "
                          f"give ObservationNoise(marginal=...) or use a noise built by csf_jax "
                          f"(gaussian_noise, gaussian_noise_cov, cauchy_noise)")
+
+
+def check_obs(obs, model, *, name: str = "filter") -> tuple[int, int]:
+    """Check ``obs (K, m)`` against ``model``: shape, float dtype, no inf (NaN: missing), and that
+    the model's noise can leave missing entries out; return ``(K, m)``."""
+    obs = jnp.asarray(obs)
+    if obs.ndim != 2:
+        raise ValueError(f"{name}: obs must have shape (K, m) = (steps, obs_dim), got {obs.shape}; "
+                         f"use jax.vmap for batches of runs")
+    K, m = obs.shape
+    if m != model.obs_dim:
+        raise ValueError(f"{name}: obs has dimension m={m} but model {model.name!r} has "
+                         f"obs_dim={model.obs_dim}")
+    if K < 1:
+        raise ValueError(f"{name}: obs must hold at least one step, got shape {obs.shape}")
+    if not jnp.issubdtype(obs.dtype, jnp.floating):
+        raise TypeError(f"{name}: obs must be a floating array, got dtype {obs.dtype}")
+    check_finite(f"{name}: obs", obs, allow_nan=True)
+    check_missing_supported(name, obs, model)
+    return K, m
+
+
+def check_inputs(inputs, num_steps: int, model, *, name: str = "filter") -> None:
+    """A time-varying model's per-step ``inputs``: a pytree of arrays with leading axis K (or
+    None); refused for a model that is not time-varying."""
+    if inputs is None:
+        return
+    if not model.time_varying:
+        raise ValueError(f"{name}: inputs given, but model {model.name!r} is not time-varying "
+                         f"(set time_varying=True and let drift/observe take the step)")
+    for path, leaf in jax.tree_util.tree_leaves_with_path(inputs):
+        shape = jnp.shape(leaf)
+        if not shape or shape[0] != num_steps:
+            where = jax.tree_util.keystr(path) or "inputs"
+            raise ValueError(f"{name}: inputs{'' if where == 'inputs' else where} must have "
+                             f"leading axis K={num_steps} (one input per observation), got shape "
+                             f"{shape}")
+        check_finite(f"{name}: inputs", leaf)
 
 
 def check_filter_inputs(obs, ensemble, model, *, name: str = "filter") -> tuple[int, int, int, int]:
@@ -116,6 +155,18 @@ def promote(obs, ensemble):
     obs, ensemble = jnp.asarray(obs), jnp.asarray(ensemble)
     dtype = jnp.result_type(obs.dtype, ensemble.dtype)
     return obs.astype(dtype), ensemble.astype(dtype)
+
+
+def promote_tree(obs, state):
+    """``obs`` and every floating leaf of ``state`` (an ensemble, or a filter's initial state) as
+    arrays of their common float dtype (as ``promote``)."""
+    obs = jnp.asarray(obs)
+    leaves = [jnp.asarray(x) for x in jax.tree_util.tree_leaves(state)]
+    dtype = jnp.result_type(obs.dtype, *[x.dtype for x in leaves
+                                         if jnp.issubdtype(x.dtype, jnp.floating)])
+    cast = lambda x: (jnp.asarray(x).astype(dtype)
+                      if jnp.issubdtype(jnp.asarray(x).dtype, jnp.floating) else jnp.asarray(x))
+    return obs.astype(dtype), jax.tree_util.tree_map(cast, state)
 
 
 def check_sigma_max(network, config, name: str) -> None:

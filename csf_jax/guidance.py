@@ -126,7 +126,7 @@ def guidance_displacement(config: GuidanceConfig, grad, loglik, g2dt, noise_scal
 
 
 def kalman_tweedie(x0_hat, prior_precision, loglik_fn, observe_fn, weight_fn, u_init, guide,
-                   iterations: int):
+                   iterations: int, damped: bool = False):
     """Posterior Tweedie estimate ``E[x_0 | x_t, y]`` and the Cholesky factor of its precision.
 
     Maximises ``-1/2 (u - x0_hat)^T P^{-1} (u - x0_hat) + log p(y | u)`` per particle by
@@ -136,24 +136,46 @@ def kalman_tweedie(x0_hat, prior_precision, loglik_fn, observe_fn, weight_fn, u_
     to Cauchy outliers). One step is exact for a linear ``h`` and Gaussian noise (the Kalman
     update); ``A^{-1}`` is the Laplace covariance of ``x_0 | x_t, y``.
 
-    x0_hat: (N, d) prior Tweedie estimates.  prior_precision: (d, d) ``P^{-1}``, shared.
+    x0_hat: (N, d) prior Tweedie estimates.  prior_precision: (d, d) ``P^{-1}``, shared, or
+    (N, d, d), one per particle.
     loglik_fn: ``u (d,) -> scalar``.  observe_fn: ``u (d,) -> (m,)``.  weight_fn: ``u (d,) -> (m,)``
     per-coordinate weights, or ``(m, m)`` (a correlated noise's precision).
     u_init: (N, d) starting points (the previous reverse step's solution).  guide: scalar 0 or 1
     (0: no observation, ``u = x0_hat``, ``A = P^{-1}``).
+    damped: take the best of the step fractions ``DAMPING`` by the objective instead of the full
+      step (a line search: every iteration ascends, also far from the mode of a strongly
+      nonlinear sensor); the factor returned is then the one at the final ``u``.
     Returns ``(u (N, d), chol (N, d, d))``, ``chol`` lower-triangular with ``chol chol^T = A`` at the
     last linearisation point.
     """
-    def one(x0h, u):
+    def system(x0h, u, precision):
+        jac = jax.jacfwd(observe_fn)(u)
+        chol = _linalg.cholesky(precision + guide * _weighted_gram(jac, weight_fn(u)))
+        return chol, precision @ (x0h - u) + guide * jax.grad(loglik_fn)(u)
+
+    def objective(x0h, u, precision):
+        diff = u - x0h
+        return -0.5 * diff @ precision @ diff + guide * loglik_fn(u)
+
+    def one(x0h, u, precision):
         for _ in range(iterations):
-            jac = jax.jacfwd(observe_fn)(u)
-            grad = jax.grad(loglik_fn)(u)
-            chol = _linalg.cholesky(prior_precision + guide * _weighted_gram(jac, weight_fn(u)))
-            rhs = prior_precision @ (x0h - u) + guide * grad
-            u = u + _linalg.cho_solve(chol, rhs)
+            chol, rhs = system(x0h, u, precision)
+            step = _linalg.cho_solve(chol, rhs)
+            if damped:
+                tries = u + jnp.asarray(DAMPING, u.dtype)[:, None] * step
+                values = jax.vmap(lambda v: objective(x0h, v, precision))(tries)
+                u = tries[jnp.argmax(jnp.where(jnp.isnan(values), -jnp.inf, values))]
+            else:
+                u = u + step
+        if damped:
+            chol, _ = system(x0h, u, precision)
         return u, chol
 
-    return jax.vmap(one)(x0_hat, u_init)
+    shared = prior_precision.ndim == 2
+    return jax.vmap(one, in_axes=(0, 0, None if shared else 0))(x0_hat, u_init, prior_precision)
+
+
+DAMPING = tuple(0.5 ** k for k in range(13)) + (0.0,)
 
 
 def _weighted_gram(jac, weight):
@@ -171,20 +193,20 @@ def student_t(key, df: int, shape, dtype):
     return g[0] / jnp.sqrt(jnp.mean(g[1:] * g[1:], 0))
 
 
-def resample_posterior(key, x0_hat, prior_precision, u, chol, loglik_fn, guide, proposals: int,
-                       df: Optional[int] = None):
-    """One draw per particle of ``N(x_0; x0_hat, P) p(y | x_0)`` by importance resampling.
+def importance_weights(key, mean, precision, u, chol, loglik_fn, guide, proposals: int,
+                       df: Optional[int] = None, normalized: bool = False):
+    """K candidates per row from the Laplace Gaussian ``N(u, A^{-1})`` (or its Student-t
+    version), and their log importance weights against ``N(c; mean, P) p(y | c)^guide``.
 
-    K candidates ``u + chol^{-T} z`` from the Laplace Gaussian ``N(u, A^{-1})``; weights
-    ``N(c; x0_hat, P) p(y | c)^guide / N(c; u, A^{-1})`` (``-1/2 |z|^2`` is the proposal's log density
-    up to a constant shared by all candidates); one kept per particle. Consistent as K grows; K = 1
-    returns the Laplace draw. df: if given, each whitened coordinate ``z_j`` is an independent
-    Student-t with ``df`` degrees of freedom instead of N(0, 1): a heavy-tailed proposal that reaches
-    the tails of a heavy-tailed posterior (Cauchy noise), which the Laplace Gaussian never proposes.
-    x0_hat, u: (N, d).  prior_precision: (d, d).  chol: (N, d, d).  Returns (N, d).
+    mean, u: (N, d).  precision: (d, d) ``P^{-1}`` shared, or (N, d, d) one per row.
+    chol: (N, d, d) with ``chol chol^T = A``.  Returns ``(cand (K, N, d), log_w (K, N))``.
+    normalized: include each row's normalising constants (``1/2 log det P^{-1}`` and
+    ``log det chol``), so that ``logmeanexp_k log_w`` estimates the row's evidence
+    ``int N(c; mean, P) p(y | c)^guide dc`` up to a constant shared by all rows; without them the
+    weights serve to pick among a row's own candidates only.
     """
     n, d = u.shape
-    k_draw, k_pick = jax.random.split(key)
+    k_draw, _ = jax.random.split(key)
     if df is None:
         z = jax.random.normal(k_draw, (proposals, n, d), u.dtype)
         log_q = -0.5 * jnp.sum(z * z, -1)
@@ -192,10 +214,40 @@ def resample_posterior(key, x0_hat, prior_precision, u, chol, loglik_fn, guide, 
         z = student_t(k_draw, df, (proposals, n, d), u.dtype)
         log_q = -0.5 * (df + 1.0) * jnp.sum(jnp.log1p(z * z / df), -1)
     cand = u + _linalg.solve_lower_transposed(chol, z)
-    if proposals == 1:
-        return cand[0]
-    diff = cand - x0_hat
-    log_w = (-0.5 * jnp.einsum("knd,de,kne->kn", diff, prior_precision, diff)
+    diff = cand - mean
+    spec = "knd,de,kne->kn" if precision.ndim == 2 else "knd,nde,kne->kn"
+    log_w = (-0.5 * jnp.einsum(spec, diff, precision, diff)
              + guide * jax.vmap(jax.vmap(loglik_fn))(cand) - log_q)
+    if normalized:  # log N(c; mean, P) and log N(c; u, A^{-1}) in full
+        log_w = (log_w + 0.5 * _log_det(precision)
+                 - jnp.sum(jnp.log(jnp.diagonal(chol, axis1=-2, axis2=-1)), -1))
+    return cand, log_w
+
+
+def _log_det(precision):
+    """``log det`` of a symmetric positive-definite ``(..., d, d)`` matrix."""
+    chol = _linalg.cholesky(precision)
+    return 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol, axis1=-2, axis2=-1)), -1)
+
+
+def resample_posterior(key, x0_hat, prior_precision, u, chol, loglik_fn, guide, proposals: int,
+                       df: Optional[int] = None):
+    """One draw per particle of ``N(x_0; x0_hat, P) p(y | x_0)`` by importance resampling.
+
+    K candidates ``u + chol^{-T} z`` from the Laplace Gaussian ``N(u, A^{-1})``; weights
+    ``N(c; x0_hat, P) p(y | c)^guide / N(c; u, A^{-1})`` (``importance_weights``); one kept per
+    particle. Consistent as K grows; K = 1 returns the Laplace draw. df: if given, each whitened
+    coordinate ``z_j`` is an independent Student-t with ``df`` degrees of freedom instead of
+    N(0, 1): a heavy-tailed proposal that reaches the tails of a heavy-tailed posterior (Cauchy
+    noise), which the Laplace Gaussian never proposes.
+    x0_hat, u: (N, d).  prior_precision: (d, d), or (N, d, d).  chol: (N, d, d).  Returns (N, d).
+    """
+    if proposals == 1:
+        cand, _ = importance_weights(key, x0_hat, prior_precision, u, chol, lambda c: 0.0, 0.0, 1,
+                                     df)
+        return cand[0]
+    cand, log_w = importance_weights(key, x0_hat, prior_precision, u, chol, loglik_fn, guide,
+                                     proposals, df)
+    _, k_pick = jax.random.split(key)
     pick = jax.random.categorical(k_pick, log_w, axis=0)
     return jnp.take_along_axis(cand, pick[None, :, None], axis=0)[0]

@@ -25,23 +25,24 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from csf_jax.ssm import StateSpaceModel, observed
+from csf_jax.ssm import StateSpaceModel, gaussian_standin, is_additive, observed
 
 
 def innovation_statistic(prior_ens, y, model: StateSpaceModel, base: float = 0.0):
     """``(e^2 (m,), v (m,), g (m,))`` of the module docstring for ``prior_ens: (N, d)``, ``y: (m,)``.
 
     ``v`` includes the fixed inflation ``base`` (``base^2 g``) and the noise's variance ``r`` (the
-    diagonal of ``ObservationNoise.cov``: ``gaussian_std^2`` unless a covariance is given). Missing
-    (NaN) entries of ``y`` get ``e^2 = 0``.
+    diagonal of the Gaussian stand-in's R, ``ssm.gaussian_standin``: ``gaussian_std^2`` unless a
+    covariance is given). Missing (NaN) entries of ``y`` get ``e^2 = 0``.
     """
-    hx = jax.vmap(model.observe)(prior_ens)
-    jac = jax.vmap(jax.jacfwd(model.observe))(prior_ens)  # (N, m, d)
-    g = jnp.mean(jnp.sum(jac * jac, -1), 0)
-    if model.obs_noise.covariance is None:
-        r = jnp.asarray(model.obs_noise.gaussian_std, prior_ens.dtype) ** 2
+    hx, R = gaussian_standin(model, prior_ens)
+    if is_additive(model):
+        predict = model.observe
     else:
-        r = jnp.diagonal(model.obs_noise.cov(y.shape[-1], prior_ens.dtype))
+        predict = lambda x: model.obs_noise.mean(model.observe(x))
+    jac = jax.vmap(jax.jacfwd(predict))(prior_ens)  # (N, m, d)
+    g = jnp.mean(jnp.sum(jac * jac, -1), 0)
+    r = jnp.diagonal(R)
     mask = observed(y)
     e2 = jnp.where(mask, jnp.square(jnp.where(mask, y, 0.0) - hx.mean(0)), 0.0)
     v = hx.var(0) + r + base ** 2 * g

@@ -1,9 +1,16 @@
-"""The state-space model: ``x_{k+1} = f(x_k) + v_k + shock_k``, ``y_{k+1} = h(x_{k+1}) + w_k``.
+"""The state-space model: ``x_k = f(x_{k-1}) + v_k + shock_k``, ``y_k ~ p(y | h(x_k))``, k = 1..K.
 
 A model is a ``StateSpaceModel``: a NamedTuple of pure single-particle callables and constants.
 Filters vmap the callables over particles and close over the model as a static (hashable) argument,
 so every field must be hashable: Python callables, numbers, strings, tuples. Matrices live inside
 the callables' closures. ``shock`` acts on the truth only (filters never see it).
+
+The observation is additive, ``y = h(x) + w`` with an ``ObservationNoise`` w, or any density
+``p(y | eta)`` of ``eta = h(x)`` with conditionally independent entries (a ``Likelihood``:
+Poisson counts, stochastic volatility, ...). A time-varying model (``time_varying=True``) has
+``f(x, step)`` and ``h(x, step)``, where ``step`` is a ``Step``: the time index k and the user's
+per-step input ``u_k`` (``inputs=`` of the filters and of ``simulate``). ``at_step`` binds a step,
+so filter code calls ``f(x)`` and ``h(x)`` either way.
 """
 
 from __future__ import annotations
@@ -14,6 +21,7 @@ from typing import Callable, NamedTuple, Optional
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.scipy.special import gammaln
 
 from csf_jax import _linalg
 
@@ -54,6 +62,9 @@ class ObservationNoise(NamedTuple):
       observed entries alone (the others are marginalised out; their residuals are 0). Needed for
       missing observations (NaN in ``obs``). The constructors here give it; a user noise without it
       filters complete observations only.
+    tail_df: optional degrees of freedom of the noise's tails (Cauchy: 1): CSF's importance
+      proposals are then Student-t with these degrees of freedom (``GuidanceConfig.proposal_df``
+      left at None), so that they reach the heavy-tailed posterior's tails.
     """
 
     name: str
@@ -64,6 +75,7 @@ class ObservationNoise(NamedTuple):
     weight: Optional[Callable[[Array], Array]] = None
     covariance: Optional[tuple] = None
     marginal: Optional[Callable[[Array, Array], Array]] = None
+    tail_df: Optional[int] = None
 
     @property
     def fisher_information(self) -> float:
@@ -191,7 +203,57 @@ def cauchy_noise(scale: float) -> ObservationNoise:
         return 2.0 / (scale ** 2 + r * r)
 
     return _iid_noise("cauchy", lambda r: -jnp.log1p((r / scale) ** 2), sample,
-                      cauchy_matched_std(scale), fisher=1.0 / (2.0 * scale ** 2), weight=weight)
+                      cauchy_matched_std(scale), fisher=1.0 / (2.0 * scale ** 2), weight=weight,
+                      tail_df=1)
+
+
+class Likelihood(NamedTuple):
+    """A non-additive observation density ``p(y | eta)``, ``eta = h(x) (m,)``, entries of y
+    conditionally independent given eta (Poisson counts, stochastic volatility, binary data).
+
+    log_prob: ``(y (m,), eta (m,)) -> (m,)``, the log-density of each entry (up to constants in y).
+    sample: ``(key, eta (m,)) -> y (m,)``, one draw (for ``simulate``).
+    fisher: optional ``eta (m,) -> (m,)``, the Fisher information of each ``eta_j``: the curvature
+      of CSF's Gauss-Newton guidance (``J^T diag(fisher) J``, ``J = dh/dx``). None: the observed
+      information ``-d^2 log_prob / d eta^2``, clipped at 0.
+    mean, variance: optional ``eta (m,) -> (m,)``, ``E[y | eta]`` and ``Var[y | eta]``: the Gaussian
+      stand-in of the Kalman-type filters (EnKF, LETKF). Without them those filters refuse the model.
+    """
+
+    name: str
+    log_prob: Callable[[Array, Array], Array]
+    sample: Callable[[Array, Array], Array]
+    fisher: Optional[Callable[[Array], Array]] = None
+    mean: Optional[Callable[[Array], Array]] = None
+    variance: Optional[Callable[[Array], Array]] = None
+
+
+def poisson_likelihood() -> Likelihood:
+    """Counts ``y_j ~ Poisson(exp(eta_j))``: ``eta = h(x)`` is the log-rate. Fisher information
+    ``exp(eta)``; Gaussian stand-in mean = variance = ``exp(eta)``."""
+
+    def log_prob(y, eta):
+        return y * eta - jnp.exp(eta) - gammaln(y + 1.0)
+
+    def sample(key, eta):
+        return jax.random.poisson(key, jnp.exp(eta)).astype(eta.dtype)
+
+    return Likelihood("poisson", log_prob, sample, fisher=jnp.exp, mean=jnp.exp, variance=jnp.exp)
+
+
+def volatility_likelihood() -> Likelihood:
+    """``y_j ~ N(0, exp(eta_j))``, i.e. ``y = exp(eta / 2) eps``: the stochastic-volatility
+    observation, with ``eta = h(x)`` the log-variance. Fisher information 1/2; Gaussian stand-in
+    mean 0, variance ``exp(eta)`` (an EnKF learns nothing from it: y and eta are uncorrelated)."""
+
+    def log_prob(y, eta):
+        return -0.5 * (eta + y * y * jnp.exp(-eta))
+
+    def sample(key, eta):
+        return jnp.exp(0.5 * eta) * jax.random.normal(key, eta.shape, eta.dtype)
+
+    return Likelihood("volatility", log_prob, sample, fisher=lambda eta: jnp.full_like(eta, 0.5),
+                      mean=jnp.zeros_like, variance=jnp.exp)
 
 
 class ProcessNoise(NamedTuple):
@@ -264,25 +326,41 @@ def reflect_shock(key: Array, x: Array) -> Array:
     return -x
 
 
+class Step(NamedTuple):
+    """What a time-varying model's ``drift`` and ``observe`` are told at step k.
+
+    k: int32 scalar, the index of the state being made and observed: ``x_k = f(x_{k-1}, step)``,
+      ``y_k`` from ``h(x_k, step)``; k = 1 .. K (``obs[k - 1]``).
+    u: the user's input for step k (``inputs`` sliced at ``k - 1``, any pytree), or None.
+    """
+
+    k: Array
+    u: object = None
+
+
 class StateSpaceModel(NamedTuple):
-    """A discrete-time state-space model with additive process and observation noise.
+    """A discrete-time state-space model with additive process noise.
 
     Attributes:
       name: identifier.
       dim: state dimension d.  obs_dim: observation dimension m.
       num_steps: default trajectory length K (observations ``y_1 .. y_K``).
       dt: the time step the dynamics were discretised with (informational).
-      drift: ``x (d,) -> (d,)``, the deterministic map f (it includes ``x_k`` itself).
-      observe: ``x (d,) -> (m,)``, the observation map h.
+      drift: ``x (d,) -> (d,)``, the deterministic map f (it includes ``x_k`` itself); with
+        ``time_varying``, ``(x, step: Step) -> (d,)``.
+      observe: ``x (d,) -> (m,)``, the observation map h; with ``time_varying``, ``(x, step)``.
       process_std: std of the i.i.d. Gaussian process noise v (per coordinate); ignored where
         ``process_noise`` is given.
-      obs_noise: the observation noise w.
+      obs_noise: the observation's law given ``h(x)``: an additive ``ObservationNoise`` w
+        (``y = h(x) + w``), or a ``Likelihood`` ``p(y | eta = h(x))`` for non-additive data.
       initial_truth: ``key -> (d,)``, draws ``x_0`` of the truth.
       initial_ensemble: ``(key, N) -> (N, d)``, the filters' initial ensemble.
       shock_times: ``(key, K) -> (K,)`` bool, the steps at which the truth is shocked.
       shock: ``(key, x (d,)) -> (d,)``, the truth right after a shock (applied after the dynamics).
       process_noise: optional ``ProcessNoise`` (a full covariance, or any sampler); None: i.i.d.
         ``N(0, process_std^2)``.
+      time_varying: drift and observe take the ``Step`` as a second argument (the time index and
+        the per-step input).
     """
 
     name: str
@@ -299,6 +377,35 @@ class StateSpaceModel(NamedTuple):
     shock_times: Callable[[Array, int], Array] = no_shock_times
     shock: Callable[[Array, Array], Array] = reflect_shock
     process_noise: Optional[ProcessNoise] = None
+    time_varying: bool = False
+
+
+def at_step(model: StateSpaceModel, step: Optional[Step]) -> StateSpaceModel:
+    """``model`` with ``step`` bound into a time-varying drift and observation map, so that they
+    take ``x`` alone; the model itself when it is not time-varying. For use inside a trace: the
+    result holds traced values and is not a static argument."""
+    if not model.time_varying:
+        return model
+    if step is None:
+        raise ValueError(f"model {model.name!r} is time-varying: its drift and observe need the "
+                         f"step (csf_jax.Step(k, u))")
+    return model._replace(drift=lambda x: model.drift(x, step),
+                          observe=lambda x: model.observe(x, step), time_varying=False)
+
+
+def steps(num_steps: int, inputs=None) -> Step:
+    """The ``Step`` of every time index, stacked: ``k = 1 .. K`` (int32) and ``u = inputs``."""
+    return Step(jnp.arange(1, num_steps + 1, dtype=jnp.int32), inputs)
+
+
+def is_additive(model: StateSpaceModel) -> bool:
+    """True if the observation is ``y = h(x) + w`` with an ``ObservationNoise`` w."""
+    return isinstance(model.obs_noise, ObservationNoise)
+
+
+def tail_df(model: StateSpaceModel) -> Optional[int]:
+    """The degrees of freedom of the observation noise's heavy tails, or None (light tails)."""
+    return model.obs_noise.tail_df if is_additive(model) else None
 
 
 def process_draws(model: StateSpaceModel, key: Array, shape: tuple, dtype=jnp.float32) -> Array:
@@ -328,11 +435,62 @@ def log_likelihood(model: StateSpaceModel, y: Array, x: Array) -> Array:
 
     NaN entries of ``y`` are missing: only the observed entries enter (0 if none is observed).
     """
+    if not is_additive(model):
+        return jnp.sum(entry_log_likelihood(model, y, x))
     return model.obs_noise.masked_log_prob(residual(model, y, x), observed(y))
 
 
+def entry_log_likelihood(model: StateSpaceModel, y: Array, x: Array) -> Array:
+    """``(m,)``: ``log p(y_j | x)`` of each entry of ``y (m,)`` (0 where missing), for models whose
+    entries are conditionally independent (a ``Likelihood``, or i.i.d. additive noise)."""
+    mask = observed(y)
+    if is_additive(model):
+        r = residual(model, y, x)
+        return jnp.where(mask, jax.vmap(lambda ri: model.obs_noise.log_prob(ri[None]))(r), 0.0)
+    lp = model.obs_noise.log_prob(jnp.where(mask, y, 0.0), model.observe(x))
+    return jnp.where(mask, lp, 0.0)
+
+
+def curvature(model: StateSpaceModel, y: Array, x: Array) -> Array:
+    """The Gauss-Newton curvature of ``-log p(y | .)`` in ``eta = h(x)`` at ``x (d,)``: per-entry
+    weights ``(m,)`` or an ``(m, m)`` precision; 0 on missing entries. The guidance's curvature in
+    x is ``J^T W J`` with ``J = dh/dx``. Additive noise: ``ObservationNoise.curvature``; a
+    ``Likelihood``: its Fisher information (or the observed information, clipped at 0)."""
+    mask = observed(y)
+    if is_additive(model):
+        return model.obs_noise.curvature(residual(model, y, x), mask).astype(x.dtype)
+    eta = model.observe(x)
+    lik = model.obs_noise
+    if lik.fisher is not None:
+        w = lik.fisher(eta)
+    else:
+        y0 = jnp.where(mask, y, 0.0)
+        grad = jax.grad(lambda e: jnp.sum(lik.log_prob(y0, e)))
+        w = jnp.maximum(-jax.grad(lambda e: jnp.sum(grad(e)))(eta), 0.0)
+    return jnp.where(mask, w, 0.0).astype(x.dtype)
+
+
+def gaussian_standin(model: StateSpaceModel, ensemble: Array):
+    """What a Kalman-type filter sees of the observation of ``ensemble (N, d)``: the predicted
+    observations ``(N, m)`` and the noise covariance ``R (m, m)``. Additive noise: ``h(x_i)`` and
+    ``ObservationNoise.cov``; a ``Likelihood``: ``E[y | x_i]`` and the ensemble-mean ``Var[y | x_i]``
+    on the diagonal (ValueError if it gives neither)."""
+    m = model.obs_dim
+    if is_additive(model):
+        return (jax.vmap(model.observe)(ensemble).astype(ensemble.dtype),
+                model.obs_noise.cov(m, ensemble.dtype))
+    lik = model.obs_noise
+    if lik.mean is None or lik.variance is None:
+        raise ValueError(f"model {model.name!r}: its likelihood {lik.name!r} gives no Gaussian "
+                         f"stand-in (Likelihood.mean and .variance), which a Kalman-type filter needs")
+    eta = jax.vmap(model.observe)(ensemble)
+    var = jnp.mean(jax.vmap(lik.variance)(eta), 0)
+    return jax.vmap(lik.mean)(eta).astype(ensemble.dtype), jnp.diag(var).astype(ensemble.dtype)
+
+
 def residual(model: StateSpaceModel, y: Array, x: Array) -> Array:
-    """``y - h(x)`` with 0 at the missing (NaN) entries of ``y (m,)``; ``x: (d,)``."""
+    """``y - h(x)`` with 0 at the missing (NaN) entries of ``y (m,)``; ``x: (d,)`` (additive
+    observation noise)."""
     mask = observed(y)
     return jnp.where(mask, jnp.where(mask, y, 0.0) - model.observe(x), 0.0)
 
@@ -352,34 +510,64 @@ def shock_steps(model: StateSpaceModel, key: Array, num_steps: int | None = None
     return model.shock_times(jax.random.split(key, 5)[1], K)
 
 
-def simulate(model: StateSpaceModel, key: Array, num_steps: int | None = None):
+def simulate(model: StateSpaceModel, key: Array, num_steps: int | None = None, inputs=None):
     """Simulate the truth and its observations.
 
     Returns ``truth (K+1, d)`` (``x_0 .. x_K``) and ``obs (K, m)`` (``y_1 .. y_K``), with the model's
-    shocks applied to the truth. Same key, same trajectory. Jit- and vmap-friendly.
+    shocks applied to the truth. ``inputs``: a time-varying model's per-step inputs, a pytree whose
+    leaves have leading axis K (K defaults to theirs). Same key, same trajectory. Jit- and
+    vmap-friendly.
     """
-    K = model.num_steps if num_steps is None else int(num_steps)
+    K = _num_steps(model, num_steps, inputs, "simulate")
     k0, _, k_shock, k_proc, k_obs = jax.random.split(key, 5)
     x0 = model.initial_truth(k0)
     shocked = shock_steps(model, key, K)
     v = process_draws(model, k_proc, (K, model.dim))
+    stepped = steps(K, inputs)
 
-    def step(x, inputs):
-        v_k, shocked_k, key_k = inputs
-        x_next = model.drift(x) + v_k
+    def step(x, xs):
+        v_k, shocked_k, key_k, step_k = xs
+        x_next = at_step(model, step_k).drift(x) + v_k
         x_next = jnp.where(shocked_k, model.shock(key_k, x_next), x_next)
         return x_next, x_next
 
-    _, xs = jax.lax.scan(step, x0, (v, shocked, jax.random.split(k_shock, K)))
+    _, xs = jax.lax.scan(step, x0, (v, shocked, jax.random.split(k_shock, K), stepped))
     truth = jnp.concatenate([x0[None], xs], axis=0)
-    noise = model.obs_noise.sample(k_obs, (K, model.obs_dim))
-    obs = jax.vmap(model.observe)(xs) + noise
+    eta = jax.vmap(lambda x, s: at_step(model, s).observe(x))(xs, stepped)
+    if is_additive(model):
+        obs = eta + model.obs_noise.sample(k_obs, (K, model.obs_dim))
+    else:
+        obs = jax.vmap(model.obs_noise.sample)(jax.random.split(k_obs, K), eta)
     return truth, obs
+
+
+def _num_steps(model: StateSpaceModel, num_steps, inputs, name: str) -> int:
+    """K: ``num_steps``, else the inputs' leading axis, else ``model.num_steps``; checked."""
+    lengths = {int(np.shape(leaf)[0]) if np.ndim(leaf) else -1
+               for leaf in jax.tree_util.tree_leaves(inputs)}
+    if inputs is not None and not model.time_varying:
+        raise ValueError(f"{name}: inputs given, but model {model.name!r} is not time-varying "
+                         f"(set time_varying=True and let drift/observe take the step)")
+    if -1 in lengths or len(lengths) > 1:
+        raise ValueError(f"{name}: every leaf of inputs needs the same leading axis K, got "
+                         f"leading sizes {sorted(lengths)} (-1: a scalar)")
+    K = model.num_steps if num_steps is None else num_steps
+    if num_steps is None and lengths:
+        K = lengths.pop()
+    elif lengths and lengths != {K}:
+        raise ValueError(f"{name}: inputs have {lengths.pop()} steps but num_steps is {K}")
+    if isinstance(K, bool) or not isinstance(K, (int, np.integer)) or K < 1:
+        raise ValueError(f"{name}: num_steps must be a positive int, got {K!r}")
+    return int(K)
 
 
 def drop_observations(key: Array, obs: Array, rate: float, *, whole_steps: float = 0.0) -> Array:
     """``obs (K, m)`` with entries set to NaN (missing): each entry independently with probability
     ``rate``, and each whole step with probability ``whole_steps`` (a step with no observation)."""
+    for label, p in (("rate", rate), ("whole_steps", whole_steps)):
+        if not (isinstance(p, (int, float, np.floating)) and 0.0 <= float(p) <= 1.0):
+            raise ValueError(f"drop_observations: {label} must be a probability in [0, 1], "
+                             f"got {p!r}")
     k_entry, k_step = jax.random.split(key)
     drop = jax.random.bernoulli(k_entry, rate, obs.shape)
     drop = drop | jax.random.bernoulli(k_step, whole_steps, obs.shape[:-1] + (1,))

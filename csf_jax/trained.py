@@ -30,7 +30,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 from csf_jax import networks
-from csf_jax.ssm import StateSpaceModel
+from csf_jax.ssm import StateSpaceModel, Step, at_step, is_additive
 
 
 class TrainedPrior(NamedTuple):
@@ -105,18 +105,21 @@ def model_fingerprint(model: StateSpaceModel) -> dict:
 def _fingerprint(model: StateSpaceModel) -> dict:
     with jax.ensure_compile_time_eval():
         x = jnp.asarray(model.initial_ensemble(jax.random.key(0), PROBE_POINTS), jnp.float32)
-        drift = np.asarray(jax.vmap(model.drift)(x), np.float64)
-        observe = np.asarray(jax.vmap(model.observe)(x), np.float64)
+        probe = at_step(model, Step(jnp.asarray(1, jnp.int32), None))  # time-varying: at k = 1
+        drift = np.asarray(jax.vmap(probe.drift)(x), np.float64)
+        observe = np.asarray(jax.vmap(probe.observe)(x), np.float64)
     noise = model.obs_noise
     process = ({"std": float(model.process_std)} if model.process_noise is None else
                {"name": model.process_noise.name,
                 "covariance": None if model.process_noise.covariance is None
                 else [list(r) for r in model.process_noise.covariance]})
+    obs_noise = ({"name": noise.name, "gaussian_std": float(noise.gaussian_std),
+                  "covariance": None if noise.covariance is None
+                  else [list(r) for r in noise.covariance]} if is_additive(model)
+                 else {"name": noise.name, "likelihood": True})
     return {"name": model.name, "dim": int(model.dim), "obs_dim": int(model.obs_dim),
             "process_noise": process,
-            "obs_noise": {"name": noise.name, "gaussian_std": float(noise.gaussian_std),
-                          "covariance": None if noise.covariance is None
-                          else [list(r) for r in noise.covariance]},
+            "obs_noise": obs_noise,
             "probe": {"x": np.asarray(x, np.float64).tolist(), "drift": drift.tolist(),
                       "observe": observe.tolist()}}
 

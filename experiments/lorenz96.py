@@ -26,8 +26,8 @@ import numpy as np
 
 import csf_jax
 from csf_jax import problems
-from csf_jax.filters.letkf import _letkf_scan
-from csf_jax.filters.result import mark_nonfinite
+from csf_jax.filters import driver
+from csf_jax.filters.letkf import LETKF, LETKFStatic
 from csf_jax.problems.lorenz96 import obs_sites
 from experiments._cli import write_page
 from experiments.run import machine
@@ -96,11 +96,10 @@ def cell(name: str, method: str, particles: int, runs: int, steps: int, **settin
 @functools.lru_cache(maxsize=None)
 def _letkf_runner(name, model, cfg, radius: float):
     """One compiled LETKF over runs per (setup, radius); the inflation is an argument."""
-    loc = csf_jax.ring_localization(model.dim, obs_sites(cfg))
-    scan = functools.partial(_letkf_scan, problem=model, radius=float(radius), loc=loc,
-                             return_ensembles=False)
-    return jax.jit(jax.vmap(lambda o, e, k, infl: mark_nonfinite(scan(o, e, k, infl), o),
-                            in_axes=(0, 0, 0, None)))
+    static = LETKFStatic(float(radius), csf_jax.ring_localization(model.dim, obs_sites(cfg)))
+    return jax.jit(jax.vmap(lambda o, e, k, infl: driver.run(
+        LETKF, o, e, model=model, key=k, config=static, params=infl, check_finite=False),
+        in_axes=(0, 0, 0, None)))
 
 
 @functools.lru_cache(maxsize=None)

@@ -40,7 +40,7 @@ def test_exact_prior_csf_tracks_kalman(kalman_case, mode, x64):
     cfg = CSFConfig(reverse_steps=100, guidance=GuidanceConfig(mode=mode), prior_inflation=0.0,
                     adaptive_inflation=False)
     r = csf_jax.filter(None, case.obs, case.ensemble, problem=case.model, key=jax.random.key(5),
-                       config=cfg)
+                       config=cfg, prior=csf_jax.exact_mixture_prior())
     err = case.errors(r.mean, r.std)
     assert err.mean_rms < 0.25 and err.mean_max < 0.7, err
     assert err.std_rms < 0.35, err

@@ -1,9 +1,12 @@
 """The Conditional Score-based Filter, online stage (paper Sec. 2.2, Alg. 2).
 
-Each filter step, inside one jitted ``lax.scan`` over the K observations:
+Each filter step, inside one jitted ``lax.scan`` over the K observations (``csf_jax.filters.driver``):
 
     propagate (vmapped drift + process noise) -> prior ensemble -> condition the prior score once
-      -> lax.scan over L reverse steps -> posterior ensemble (the next carry); mean and std out.
+      -> the mixture prior's evidence stage (``csf_jax.mixture``: particle, ensemble and shock
+         components; each member's component drawn by prior weight x evidence)
+      -> lax.scan over L reverse steps for the members of the ensemble and shock components
+      -> posterior ensemble (the next carry); mean and std out.
 
 Two samplers, chosen by ``CSFConfig.guidance.mode``:
 
@@ -31,17 +34,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from csf_jax import _checks, networks, trained
-from csf_jax.filters.result import FilterResult, mark_nonfinite
+from csf_jax import _checks, _linalg, mixture, networks, trained
+from csf_jax.filters.driver import Method, StepOutput, run
+from csf_jax.filters.result import FilterResult
 from csf_jax.guidance import (GuidanceConfig, dps_gradient, guidance_displacement, kalman_tweedie,
                               resample_posterior)
 from csf_jax.inflation import STATISTICS, adaptive_inflation
 from csf_jax.networks import NetworkConfig
-from csf_jax.prior import PriorScore, exact_mixture_prior, gaussian_precision, learned_prior
+from csf_jax.mixture import MixtureConfig
+from csf_jax.prior import (GaussianContext, PriorScore, ensemble_moments, gaussian_precision,
+                           gaussian_prior, learned_prior)
 from csf_jax.sde import (bridge, diffusion_sq, inflated_time, marginal_std, marginal_std_host,
                          noise_levels, reverse_grid, time_of_std)
-from csf_jax.ssm import (StateSpaceModel, is_isotropic, log_likelihood, observed, process_draws,
-                         residual)
+from csf_jax.ssm import (StateSpaceModel, curvature, is_isotropic, log_likelihood, process_draws,
+                         tail_df)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,8 +76,9 @@ class CSFConfig:
       (docs/ablation.md).
     adaptive_inflation: choose the inflation per filter step from the innovation
       (``csf_jax.inflation.adaptive_inflation``): ``tau^2 = prior_inflation^2 + s``, with ``s > 0`` only
-      when the observation is improbable under the prior ensemble (a shock), 0 otherwise.
-      Default True.
+      when the observation is improbable under the prior ensemble (a shock), 0 otherwise. Default
+      False: the mixture prior's shock components decide by the evidence instead (a threshold on
+      the innovation reads a nonlinear sensor's surprises as shocks; docs/zoo.md).
     inflation_threshold: the adaptive inflation's trigger, in standard deviations of the chi-square
       innovation statistic above its mean m.
     inflation_max: cap on the adaptive part of tau.
@@ -84,6 +91,9 @@ class CSFConfig:
       priors were trained on sets of 32-128 particles. Default 256: at N = 1000 the same RMSE as
       all N on the double well and cubic10_indep, +0.7% on Cauchy, and 0.6x the time of a double-well
       step (docs/ablation.md).
+    mixture: the mixture prior (``csf_jax.mixture.MixtureConfig``: particle, ensemble and shock
+      components weighed by their evidence), or None for the ensemble component alone (the
+      paper's sampler with this config's inflation). Used by the ancestral sampler ("kalman").
     """
 
     reverse_steps: int = 20
@@ -93,11 +103,12 @@ class CSFConfig:
     assimilate_first: bool = True
     denoise_last: bool = True
     prior_inflation: float = 0.0
-    adaptive_inflation: bool = True
+    adaptive_inflation: bool = False
     inflation_threshold: float = 2.0
     inflation_max: float = 10.0
     inflation_statistic: str = "median"
     encode_particles: Optional[int] = 256
+    mixture: Optional[MixtureConfig] = MixtureConfig()
 
     def __post_init__(self):
         if self.reverse_steps < 2:
@@ -117,6 +128,9 @@ class CSFConfig:
         n = self.encode_particles
         if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 2):
             raise ValueError(f"CSFConfig.encode_particles must be None or an int >= 2, got {n!r}")
+        if self.mixture is not None and not isinstance(self.mixture, MixtureConfig):
+            raise TypeError(f"CSFConfig.mixture must be a csf_jax.MixtureConfig or None, got "
+                            f"{type(self.mixture).__name__}")
 
 
 def uses_kalman(config: CSFConfig) -> bool:
@@ -131,10 +145,18 @@ class SamplerStart(NamedTuple):
       (Euler-Maruyama).
     tau: prior inflation of this filter step: ``CSFConfig.prior_inflation`` (a float), or the
       adaptive one of ``csf_jax.inflation`` (a scalar array).
+    kind: optional (N,) int32, the mixture prior's component of each member
+      (``csf_jax.mixture.Selection.kind``): 0 or 1 sample the prior score (0: a particle member,
+      replaced afterwards), ``1 + g`` the shock Gaussian ``N(m, C + shock_inflation[g] I)``.
+    moments: the prior ensemble's ``GaussianContext`` (mean, floored covariance), with ``kind``.
+    shock_inflation: (G,) the shock components' ``tau^2``, with ``kind``.
     """
 
     precision: Optional[jax.Array]
     tau: Union[float, jax.Array]
+    kind: Optional[jax.Array] = None
+    moments: Optional[GaussianContext] = None
+    shock_inflation: Optional[jax.Array] = None
 
 
 def step_inflation(config: CSFConfig, prior_ens, y=None, model: Optional[StateSpaceModel] = None,
@@ -174,7 +196,8 @@ def ancestral_sample(params, prior: PriorScore, context, model: StateSpaceModel,
 
     start.precision: (d, d) the ensemble Gaussian's ``(C + tau^2 I)^{-1}``; at level sigma the
     covariance of ``x_0 | x_t`` is ``P = (precision + I / sigma^2)^{-1}`` (exact for a Gaussian prior).
-    start.tau: the prior inflation.
+    start.tau: the prior inflation. start.kind: if given, each member's mixture component; members
+    of a shock component use that Gaussian's score and precision instead of the prior's.
     """
     precision = start.precision
     sigma_max = config.sigma_max
@@ -183,18 +206,32 @@ def ancestral_sample(params, prior: PriorScore, context, model: StateSpaceModel,
     eye = jnp.eye(x_init.shape[-1], dtype=x_init.dtype)
     loglik_fn = functools.partial(log_likelihood, model, y)
 
-    mask = observed(y)
-
     def weight_fn(u):
-        return model.obs_noise.curvature(residual(model, y, u), mask).astype(u.dtype)
+        return curvature(model, y, u)
+
+    shocks = start.kind is not None and start.shock_inflation.shape[0] > 0
+    if start.kind is not None:
+        shock = start.kind[:, None] > 1
+        shock_index = jnp.maximum(start.kind - 2, 0)
+        shock_cov = start.moments.cov[None] + start.shock_inflation[:, None, None] * eye
+        table = jnp.concatenate([precision[None], mixture.precision(shock_cov)]) if shocks \
+            else precision[None]
+        member_precision = table[jnp.clip(start.kind - 1, 0, table.shape[0] - 1)]  # (N, d, d)
 
     def step(carry, inputs):
         x, u = carry
         sigma, sigma_next, l_idx = inputs
         t = inflated_time(time_of_std(sigma, sigma_max), start.tau, sigma_max)
         x0_hat = x + sigma ** 2 * prior.score(params, context, x, t)
+        if start.kind is None:
+            prior_precision = precision + eye / sigma ** 2
+        else:
+            if shocks:
+                chol = _linalg.cholesky(shock_cov + sigma ** 2 * eye)        # (G, d, d)
+                solved = _linalg.cho_solve(chol[shock_index], x - start.moments.mean)
+                x0_hat = jnp.where(shock, x - sigma ** 2 * solved, x0_hat)
+            prior_precision = member_precision + eye / sigma ** 2
         u = jnp.where(l_idx == 0, x0_hat, u)
-        prior_precision = precision + eye / sigma ** 2
         u, chol = kalman_tweedie(x0_hat, prior_precision, loglik_fn, model.observe, weight_fn, u, guide,
                                  config.guidance.iterations)
         k_bridge, k_post = jax.random.split(jax.random.fold_in(key, l_idx))
@@ -277,8 +314,17 @@ def particle_sampler(model: StateSpaceModel, prior: PriorScore, config: CSFConfi
                          f"before importing jax")
     mesh = jax.sharding.Mesh(np.array(devices[:shards]), ("particles",))
     P = jax.sharding.PartitionSpec
-    return jax.shard_map(sample, mesh=mesh, in_specs=(P(), P(), P(), P("particles"), P(), P(), P()),
-                         out_specs=P("particles"), check_vma=False)
+
+    def sharded(params, context, y, x_init, start, key, guide):
+        start_spec = SamplerStart(P(), P(), None if start.kind is None else P("particles"),
+                                  None if start.moments is None else P(),
+                                  None if start.shock_inflation is None else P())
+        return jax.shard_map(sample, mesh=mesh,
+                             in_specs=(P(), P(), P(), P("particles"), start_spec, P(), P()),
+                             out_specs=P("particles"), check_vma=False)(
+            params, context, y, x_init, start, key, guide)
+
+    return sharded
 
 
 def _prior_for(params, prior: Optional[PriorScore], network: Optional[NetworkConfig],
@@ -286,58 +332,90 @@ def _prior_for(params, prior: Optional[PriorScore], network: Optional[NetworkCon
     if prior is not None:
         return prior
     if params is None:
-        return exact_mixture_prior(sigma_max)
+        return gaussian_prior(sigma_max)
     return learned_prior(network if network is not None else NetworkConfig(), encode_particles)
 
 
-@functools.partial(jax.jit, static_argnames=("model", "prior", "config", "return_ensembles",
-                                             "progress", "shards"))
-def _csf_scan(params, obs, ensemble, key, *, model: StateSpaceModel, prior: PriorScore,
-              config: CSFConfig, return_ensembles: bool, progress=None,
-              shards: int = 1) -> FilterResult:
-    K = obs.shape[0]
-    sample = particle_sampler(model, prior, config, shards)
+class CSFStatic(NamedTuple):
+    """CSF's static settings for the driver: the config, the prior-score source and the number
+    of devices the particles are split over."""
 
-    def filter_step(ens, inputs):
-        k, y, key_k = inputs
-        if progress is not None:
-            jax.debug.callback(progress, k)
-        k_prop, k_init, k_rev = jax.random.split(key_k, 3)
-        centers = jax.vmap(model.drift)(ens)
-        prior_ens = centers + process_draws(model, k_prop, ens.shape, ens.dtype)
-        context = prior.condition(params, centers, prior_ens, model.process_std)
-        guide = jnp.where((k > 0) | config.assimilate_first, 1.0, 0.0).astype(ens.dtype)
-        x_init, start = sampler_start(config, prior_ens, k_init, y, model, guide)
+    config: CSFConfig
+    prior: PriorScore
+    shards: int = 1
+
+
+def _init(model, static: CSFStatic, params, ensemble, key):
+    """Carry ``(ensemble, accumulated log Bayes factor of the mixture's particle reading)``."""
+    return (ensemble, jnp.zeros((), ensemble.dtype)), key
+
+
+def _step(model: StateSpaceModel, static: CSFStatic, params, state, y, key, time):
+    """One CSF filter step (module docstring) on ``state = (ensemble (N, d), memory)``."""
+    config, prior = static.config, static.prior
+    ens, memory = state
+    sample = particle_sampler(model, prior, config, static.shards)
+    k_prop, k_init, k_rev = jax.random.split(key, 3)
+    centers = jax.vmap(model.drift)(ens)
+    prior_ens = centers + process_draws(model, k_prop, ens.shape, ens.dtype)
+    context = prior.condition(params, centers, prior_ens, model.process_std)
+    guide = jnp.where((time.k > 1) | config.assimilate_first, 1.0, 0.0).astype(ens.dtype)
+    x_init, start = sampler_start(config, prior_ens, k_init, y, model, guide)
+    if config.mixture is None or not uses_kalman(config):
         post = sample(params, context, y, x_init, start, k_rev, guide)
-        out = (post.mean(0), post.std(0), post if return_ensembles else None)
-        return post, out
+        return (post, memory), StepOutput(post.mean(0), post.std(0), post)
+    if config.guidance.proposal_df is None and tail_df(model) is not None:
+        # the proposals take the heavy tails of the model's noise (Cauchy: Student-t, 1 dof)
+        config = dataclasses.replace(config, guidance=dataclasses.replace(
+            config.guidance, proposal_df=tail_df(model)))
+        sample = particle_sampler(model, prior, config, static.shards)
+    moments = ensemble_moments(prior_ens)
+    odds = config.mixture.particle_logodds + memory
+    k_select, k_shock = jax.random.split(jax.random.fold_in(key, 3))
+    sel = mixture.select(model, config.mixture, k_select, y, centers, prior_ens, moments.cov,
+                         jnp.square(start.tau), odds, guide)
+    shock_tau2 = sel.inflation[1:]
+    if shock_tau2.shape[0]:
+        # a shock member starts from its own, wider component's diffused prior
+        spread = jnp.sqrt(shock_tau2[jnp.maximum(sel.kind - 2, 0)])
+        x_init = x_init + jnp.where(sel.kind > 1, spread, 0.0)[:, None] * jax.random.normal(
+            k_shock, x_init.shape, x_init.dtype)
+    start = start._replace(kind=sel.kind, moments=moments, shock_inflation=shock_tau2)
+    post = sample(params, context, y, x_init, start, k_rev, guide)
+    post = jnp.where((sel.kind == 0)[:, None], sel.draws, post)
+    memory, _ = mixture.next_odds(config.mixture, memory, sel.log_bf)
+    info = {"particle_weight": sel.particle_weight, "shock_weight": sel.shock_weight}
+    return (post, memory), StepOutput(post.mean(0), post.std(0), post, info)
 
-    _, (mean, std, ens_out) = jax.lax.scan(
-        filter_step, ensemble, (jnp.arange(K), obs, jax.random.split(key, K)))
-    return FilterResult(mean=mean, std=std, ensembles=ens_out)
+
+CSF = Method("csf_jax.filter", _init, _step)
 
 
 def csf_filter(params, obs, ensemble, *, problem: StateSpaceModel, key,
                prior: Optional[PriorScore] = None, network: Optional[NetworkConfig] = None,
-               config: CSFConfig = CSFConfig(), return_ensembles: bool = False,
+               config: CSFConfig = CSFConfig(), inputs=None, return_ensembles: bool = False,
                check_finite: bool = True,
                progress: Optional[Callable[[jax.Array], None]] = None,
                shards: int = 1) -> FilterResult:
     """Filter ``obs`` with the Conditional Score-based Filter.
 
     Args:
-      params: a trained prior (``csf_jax.load_pretrained``'s ``Pretrained``: the checked route,
-        see ``csf_jax.trained.unpack``), raw network parameters ``{"encoder": ..., "score": ...}``
-        (only their shapes can be checked), or None for the exact Gaussian-mixture prior.
+      params: a trained prior (``TrainedPrior``, from ``csf_jax.train_prior``, ``load_prior`` or
+        ``load_pretrained``: the checked route, see ``csf_jax.trained.unpack``), raw network
+        parameters ``{"encoder": ..., "score": ...}`` (only their shapes can be checked), or None:
+        no network, the ensemble's own Gaussian as the ensemble component (no training needed).
       obs: (K, m) observations ``y_1 .. y_K``; float, promoted with ``ensemble`` to their common
         float dtype. NaN marks a missing entry (left out of the update); inf is an error.
       ensemble: (N, d) initial ensemble (time 0).
       problem: the ``StateSpaceModel`` (static: hashable).
       key: a ``jax.random.key``; same key, same result.
-      prior: the prior-score source; by default exact mixture if params is None, else learned.
-      network: the network config of raw ``params`` (default ``NetworkConfig()``; a ``Pretrained``
-        brings its own, and a different one here is refused).
-      config: online-stage settings (``CSFConfig``).
+      prior: the prior-score source of the ensemble component (``gaussian_prior()``,
+        ``exact_mixture_prior()``); by default the Gaussian if params is None, else the learned
+        prior. Not together with params.
+      network: the network config of raw ``params`` (default ``NetworkConfig()``; a
+        ``TrainedPrior`` brings its own, and a different one here is refused).
+      config: online-stage settings (``CSFConfig``; its ``mixture`` the mixture prior's).
+      inputs: a time-varying model's per-step inputs (a pytree, leading axis K), or None.
       return_ensembles: also return the (K, N, d) posterior ensembles.
       check_finite: when called outside jit/vmap, raise FloatingPointError if the filter diverged.
       progress: optional host callback ``k -> None`` called at the start of every filter step
@@ -346,19 +424,22 @@ def csf_filter(params, obs, ensemble, *, problem: StateSpaceModel, key,
         be divisible by it.
 
     Returns:
-      ``FilterResult`` with mean and std (K, d), ``finite`` (K,), and ensembles if asked for. Works
-      under ``jax.jit`` (bind the keyword arguments statically) and ``jax.vmap`` over
+      ``FilterResult`` with mean and std (K, d), ``finite`` (K,), ``info`` (the mixture's
+      ``particle_weight`` and ``shock_weight`` per step), and ensembles if asked for. Works under
+      ``jax.jit`` (bind the keyword arguments statically) and ``jax.vmap`` over
       ``(obs, ensemble, key)``; there a non-finite observation or mean is not raised but reported:
       from that step on ``finite`` is False and mean and std are NaN (``mark_nonfinite``).
     """
-    _checks.check_filter_inputs(obs, ensemble, problem, name="csf_jax.filter")
-    _checks.check_key(key, name="csf_jax.filter")
+    if prior is not None and params is not None and prior.name != "learned":
+        raise ValueError(f"csf_jax.filter: both a trained prior (params) and prior="
+                         f"{prior.name!r} given; the {prior.name} prior would ignore the "
+                         f"params: pass params=None with prior=, or leave prior= out")
     params, network = trained.unpack(params, problem, network)
-    obs, ensemble = _checks.promote(obs, ensemble)
     prior = _prior_for(params, prior, network, config.sigma_max, config.encode_particles)
-    if not isinstance(shards, int) or shards < 1 or ensemble.shape[-2] % shards:
+    n = jnp.shape(ensemble)[-2] if jnp.ndim(ensemble) >= 2 else 0
+    if isinstance(shards, bool) or not isinstance(shards, int) or shards < 1 or (n and n % shards):
         raise ValueError(f"csf_jax.filter: shards must be a positive int dividing the number of "
-                         f"particles N={ensemble.shape[-2]}, got {shards!r}")
+                         f"particles N={n}, got {shards!r}")
     if prior.name == "exact_mixture" and not is_isotropic(problem):
         raise ValueError(f"csf_jax.filter: the exact mixture prior needs i.i.d. process noise, but "
                          f"model {problem.name!r} has process_noise {problem.process_noise.name!r}; "
@@ -366,13 +447,10 @@ def csf_filter(params, obs, ensemble, *, problem: StateSpaceModel, key,
     if prior.name == "learned":
         if params is None:
             raise ValueError("csf_jax.filter: a learned prior needs params (got None); pass trained "
-                             "params, or params=None without prior= for the exact mixture prior")
+                             "params, or params=None without prior= for the Gaussian prior")
         networks.check_params(params, network or NetworkConfig(), problem.dim,
                               name="csf_jax.filter: params")
         _checks.check_sigma_max(network or NetworkConfig(), config, "csf_jax.filter")
-    result = mark_nonfinite(_csf_scan(params, obs, ensemble, key, model=problem, prior=prior,
-                                      config=config, return_ensembles=return_ensembles,
-                                      progress=progress, shards=shards), obs)
-    if check_finite:
-        _checks.check_result_finite("csf_jax.filter", result)
-    return result
+    return run(CSF, obs, ensemble, model=problem, key=key, config=CSFStatic(config, prior, shards),
+               params=params, inputs=inputs, return_ensembles=return_ensembles,
+               check_finite=check_finite, progress=progress)

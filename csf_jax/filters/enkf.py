@@ -4,60 +4,57 @@ Each step propagates the ensemble, optionally inflates its anomalies, and moves 
 the sample Kalman gain ``K = C_xy (C_yy + R)^{-1}`` applied to its own perturbed innovation
 ``y + e_i - h(x_i)``, ``e_i ~ N(0, R)``. ``R`` is the model's observation-noise covariance
 (``ObservationNoise.cov``: its ``covariance``, else ``gaussian_std^2 I``, for non-Gaussian noise the
-Gaussian stand-in). Exact in the linear-Gaussian limit N -> inf. Missing (NaN) entries of ``y`` are
+Gaussian stand-in; for a non-additive ``Likelihood``, ``E[y | x_i]`` stands for ``h(x_i)`` and the
+ensemble-mean ``Var[y | x_i]`` for R: ``ssm.gaussian_standin``). Exact in the linear-Gaussian limit N -> inf. Missing (NaN) entries of ``y`` are
 left out: their innovations and predicted anomalies are zeroed and their rows and columns of ``R``
 replaced by the identity's, so the gain acts on the observed entries alone.
 """
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
 
-from csf_jax._checks import (check_filter_inputs, check_key, check_result_finite, is_concrete,
-                             promote)
-from csf_jax.filters.result import FilterResult, mark_nonfinite
-from csf_jax.ssm import StateSpaceModel, observed, propagate
+from csf_jax._checks import is_concrete
+from csf_jax.filters.driver import Method, StepOutput, run
+from csf_jax.filters.result import FilterResult
+from csf_jax.ssm import StateSpaceModel, gaussian_standin, is_additive, observed, propagate
 
 
-def ensemble_kalman_filter(obs, ensemble, *, problem: StateSpaceModel, key,
+def ensemble_kalman_filter(obs, ensemble, *, problem: StateSpaceModel, key, inputs=None,
                            return_ensembles: bool = False, inflation=1.0,
-                           check_finite: bool = True) -> FilterResult:
+                           check_finite: bool = True, progress=None) -> FilterResult:
     """Run the stochastic EnKF.
 
     Args:
       obs: (K, m) observations ``y_1 .. y_K``; float, promoted with ``ensemble`` to their common
         float dtype. NaN marks a missing entry (left out of the update); inf is an error.
       ensemble: (N, d) ensemble at time 0.
-      problem: the state-space model (static: a hashable NamedTuple).
+      problem: the state-space model (static: a hashable NamedTuple). A non-additive
+        ``Likelihood`` needs its Gaussian stand-in (``mean`` and ``variance``).
       key: a JAX PRNG key; the same key gives the same result.
+      inputs: a time-varying model's per-step inputs (leading axis K), or None.
       return_ensembles: also return the analysis ensembles (K, N, d).
       inflation: multiplicative factor on the forecast anomalies (1.0 = none); a positive scalar.
       check_finite: raise FloatingPointError if the mean becomes non-finite (concrete runs only).
+      progress: optional host callback ``k -> None`` at every step.
 
     Returns:
       ``FilterResult(mean (K, d), std (K, d), ensembles (K, N, d) | None, ess=None, finite (K,))``,
       mean and std (N-1 denominator) of the analysis ensemble. Under jit/vmap, mean and std are
       NaN and ``finite`` False from a non-finite step on (``mark_nonfinite``).
     """
-    check_filter_inputs(obs, ensemble, problem, name="ensemble_kalman_filter")
-    check_key(key, name="ensemble_kalman_filter")
     if jnp.ndim(inflation) != 0:
         raise ValueError(f"ensemble_kalman_filter: inflation must be a scalar, got shape "
                          f"{jnp.shape(inflation)}")
     if is_concrete(inflation) and not (np.isfinite(inflation) and float(inflation) > 0):
         raise ValueError(f"ensemble_kalman_filter: inflation must be positive and finite, got "
                          f"{inflation}")
-    obs, ensemble = promote(obs, ensemble)
-    result = mark_nonfinite(_ensemble_kalman_filter(obs, ensemble, key, inflation, problem=problem,
-                                                    return_ensembles=bool(return_ensembles)), obs)
-    if check_finite:
-        check_result_finite("ensemble_kalman_filter", result)
-    return result
+    return run(ENSEMBLE_KALMAN_FILTER, obs, ensemble, model=problem, key=key,
+               params=jnp.asarray(inflation), inputs=inputs, return_ensembles=return_ensembles,
+               check_finite=check_finite, progress=progress)
 
 
 def enkf_analysis(key, forecast, y, model: StateSpaceModel):
@@ -69,42 +66,52 @@ def enkf_analysis(key, forecast, y, model: StateSpaceModel):
     n, m = forecast.shape[0], y.shape[0]
     mask = observed(y)
     both = mask[:, None] & mask[None, :]
-    predicted = jax.vmap(model.observe)(forecast).astype(forecast.dtype)
+    predicted, R = gaussian_standin(model, forecast)
     x_anom = forecast - forecast.mean(axis=0)
     y_anom = jnp.where(mask, predicted - predicted.mean(axis=0), 0.0)
     c_xy = x_anom.T @ y_anom / (n - 1)
     c_yy = y_anom.T @ y_anom / (n - 1)
-    R = model.obs_noise.cov(m, forecast.dtype)
     S = c_yy + jnp.where(both, R, jnp.eye(m, dtype=forecast.dtype))
-    e = model.obs_noise.gaussian_draws(key, predicted.shape, forecast.dtype)
+    e = _gaussian_draws(model, R, key, predicted.shape, forecast.dtype)
     innovations = jnp.where(mask, jnp.where(mask, y, 0.0) + e - predicted, 0.0)
     weights = jsl.cho_solve(jsl.cho_factor(S, lower=True), innovations.T)
     return forecast + (c_xy @ weights).T
 
 
-def _enkf_step(model: StateSpaceModel, return_ensembles: bool, inflation, ensemble, key, y):
+def _gaussian_draws(model: StateSpaceModel, R, key, shape, dtype):
+    """Observation perturbations ``(N, m)`` of ``N(0, R)``: the noise's own Gaussian draws where
+    it is additive, else from the stand-in's diagonal ``R``."""
+    if is_additive(model):
+        return model.obs_noise.gaussian_draws(key, shape, dtype)
+    return jax.random.normal(key, shape, dtype) * jnp.sqrt(jnp.diagonal(R))
+
+
+def _init(model, config, inflation, ensemble, key):
+    return ensemble, key
+
+
+def _step(model: StateSpaceModel, config, inflation, ensemble, y, key, time):
     """Forecast, inflate and analyse one step on ``ensemble (N, d)`` with ``y (m,)``."""
     k_prop, k_obs = jax.random.split(key)
     forecast = propagate(model, k_prop, ensemble).astype(ensemble.dtype)
     center = forecast.mean(axis=0)
-    forecast = center + inflation * (forecast - center)
+    forecast = center + inflation.astype(ensemble.dtype) * (forecast - center)
     analysis = enkf_analysis(k_obs, forecast, y, model)
-    mean = analysis.mean(axis=0)
-    std = analysis.std(axis=0, ddof=1)
-    return analysis, (mean, std, analysis if return_ensembles else None)
+    return analysis, StepOutput(analysis.mean(axis=0), analysis.std(axis=0, ddof=1), analysis)
 
 
-@functools.partial(jax.jit, static_argnames=("problem", "return_ensembles"))
-def _ensemble_kalman_filter(obs, ensemble, key, inflation, *, problem: StateSpaceModel,
-                            return_ensembles: bool) -> FilterResult:
-    """The jitted scan over time; inputs already checked and promoted to one float dtype.
-    ``obs (K, m)``, ``ensemble (N, d)``."""
-    keys = jax.random.split(key, obs.shape[0])
-    inflation = jnp.asarray(inflation, ensemble.dtype)
+def check_standin(name: str):
+    """A ``Method.check`` refusing a non-additive likelihood without a Gaussian stand-in."""
 
-    def step(ens, inputs):
-        k, y = inputs
-        return _enkf_step(problem, return_ensembles, inflation, ens, k, y)
+    def check(model: StateSpaceModel, config) -> None:
+        if not is_additive(model) and (model.obs_noise.mean is None
+                                       or model.obs_noise.variance is None):
+            raise ValueError(f"{name}: model {model.name!r} has the likelihood "
+                             f"{model.obs_noise.name!r} without a Gaussian stand-in "
+                             f"(Likelihood.mean and .variance); a Kalman-type filter needs one")
 
-    _, (mean, std, ensembles) = jax.lax.scan(step, ensemble, (keys, obs))
-    return FilterResult(mean=mean, std=std, ensembles=ensembles)
+    return check
+
+
+ENSEMBLE_KALMAN_FILTER = Method("ensemble_kalman_filter", _init, _step,
+                                check_standin("ensemble_kalman_filter"))

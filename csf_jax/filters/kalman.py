@@ -16,70 +16,70 @@ import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 
-from csf_jax._checks import check_finite
-from csf_jax.filters.result import FilterResult, mark_nonfinite
-from csf_jax.problems.linear import LinearGaussian
+from csf_jax.filters.driver import Method, StepOutput, run
+from csf_jax.filters.result import FilterResult
+from csf_jax.problems.linear import LinearGaussian, to_model
+from csf_jax.ssm import StateSpaceModel
 
 
-def kalman_filter(obs, *, lg: LinearGaussian) -> FilterResult:
+def kalman_filter(obs, *, lg: LinearGaussian, progress=None) -> FilterResult:
     """Filtered means and stds of ``x_1 .. x_K`` given ``obs (K, m) = y_1 .. y_K`` (NaN: missing).
 
     Returns ``FilterResult(mean (K, d), std (K, d), finite (K,))`` with
     ``std = sqrt(diag(P_{k|k}))``; no ensembles, no ESS. Use ``kalman_filter_cov`` for the full
     covariances.
     """
-    means, covs = kalman_filter_cov(obs, lg)
-    std = jnp.sqrt(jnp.clip(jnp.diagonal(covs, axis1=-2, axis2=-1), 0.0))
-    return mark_nonfinite(FilterResult(mean=means, std=std), jnp.asarray(obs))
+    result = _run(obs, lg, progress)
+    return result._replace(info=None)
 
 
 def kalman_filter_cov(obs, lg: LinearGaussian):
     """Filtered means ``(K, d)`` and covariances ``(K, d, d)`` of ``x_1 .. x_K``."""
+    result = _run(obs, lg, None, check_finite=False)
+    return result.mean, result.info["cov"]
+
+
+def _run(obs, lg, progress, check_finite: bool = False) -> FilterResult:
+    if isinstance(lg, StateSpaceModel):
+        raise TypeError("kalman_filter: lg must be a LinearGaussian, not a StateSpaceModel (it "
+                        "has no matrices to read); build the model with "
+                        "csf_jax.problems.linear.linear_gaussian(...), pass that here and "
+                        "to_model(lg) to the ensemble filters")
+    if not isinstance(lg, LinearGaussian):
+        raise TypeError(f"kalman_filter: lg must be a LinearGaussian (csf_jax.problems.linear."
+                        f"linear_gaussian), got {type(lg).__name__}")
     obs = jnp.asarray(obs)
-    _check_obs(obs, lg)
-    dtype = obs.dtype
-    return _kalman_scan(obs, jnp.asarray(lg.A, dtype), jnp.asarray(lg.H, dtype),
-                        jnp.asarray(lg.process_cov(), dtype), jnp.asarray(lg.obs_cov(), dtype),
-                        jnp.asarray(lg.m0, dtype), jnp.asarray(lg.p0_std, dtype) ** 2)
+    dtype = obs.dtype if jnp.issubdtype(obs.dtype, jnp.floating) else jnp.float32
+    params = tuple(jnp.asarray(a, dtype) for a in (lg.A, lg.H, lg.process_cov(), lg.obs_cov()))
+    state0 = (jnp.asarray(lg.m0, dtype), jnp.asarray(lg.p0_std, dtype) ** 2
+              * jnp.eye(lg.dim, dtype=dtype))
+    return run(KALMAN, obs, state0, model=to_model(lg), key=jax.random.key(0), params=params,
+               check_finite=check_finite, progress=progress)
 
 
-def _check_obs(obs, lg: LinearGaussian) -> None:
-    """``obs`` must be a floating ``(K, m)`` array with ``m = lg.obs_dim``, ``K >= 1`` and no inf
-    (NaN: missing)."""
-    if obs.ndim != 2:
-        raise ValueError(f"kalman_filter: obs must have shape (K, m) = (steps, obs_dim), got "
-                         f"{obs.shape}; use jax.vmap for batches of runs")
-    if obs.shape[1] != lg.obs_dim:
-        raise ValueError(f"kalman_filter: obs has dimension m={obs.shape[1]} but model "
-                         f"{lg.name!r} has obs_dim={lg.obs_dim}")
-    if obs.shape[0] < 1:
-        raise ValueError(f"kalman_filter: obs must hold at least one step, got shape {obs.shape}")
-    if not jnp.issubdtype(obs.dtype, jnp.floating):
-        raise TypeError(f"kalman_filter: obs must be a floating array, got dtype {obs.dtype}")
-    check_finite("kalman_filter: obs", obs, allow_nan=True)
+def _init(model, config, params, state0, key):
+    return state0, key
 
 
-@jax.jit
-def _kalman_scan(obs, A, H, Q, R, m0, p0_var):
-    """One ``lax.scan`` of predict/update steps. ``obs (K, m)``, ``A, Q (d, d)``, ``H (m, d)``,
-    ``R (m, m)``."""
+def _step(model, config, params, state, y, key, time):
+    """Predict with ``A, Q`` and update on ``y (m,)`` with ``H, R``; state ``(mean (d,), cov)``."""
+    A, H, Q, R = params
+    mean, cov = state
     d, m = A.shape[0], H.shape[0]
     eye_d, eye_m = jnp.eye(d, dtype=A.dtype), jnp.eye(m, dtype=A.dtype)
+    mask = ~jnp.isnan(y)
+    H_k = jnp.where(mask[:, None], H, 0.0)
+    R_k = jnp.where(mask[:, None] & mask[None, :], R, eye_m)
+    mean = A @ mean
+    cov = A @ cov @ A.T + Q
+    S = H_k @ cov @ H_k.T + R_k
+    gain = jsl.cho_solve(jsl.cho_factor(S, lower=True), H_k @ cov).T
+    mean = mean + gain @ jnp.where(mask, y - H @ mean, 0.0)
+    J = eye_d - gain @ H_k
+    cov = J @ cov @ J.T + gain @ R_k @ gain.T
+    cov = 0.5 * (cov + cov.T)
+    std = jnp.sqrt(jnp.clip(jnp.diagonal(cov), 0.0))
+    return (mean, cov), StepOutput(mean, std, None, {"cov": cov})
 
-    def step(carry, y):
-        mean, cov = carry
-        mask = ~jnp.isnan(y)
-        H_k = jnp.where(mask[:, None], H, 0.0)
-        R_k = jnp.where(mask[:, None] & mask[None, :], R, eye_m)
-        mean = A @ mean
-        cov = A @ cov @ A.T + Q
-        S = H_k @ cov @ H_k.T + R_k
-        gain = jsl.cho_solve(jsl.cho_factor(S, lower=True), H_k @ cov).T
-        mean = mean + gain @ jnp.where(mask, y - H @ mean, 0.0)
-        J = eye_d - gain @ H_k
-        cov = J @ cov @ J.T + gain @ R_k @ gain.T
-        cov = 0.5 * (cov + cov.T)
-        return (mean, cov), (mean, cov)
 
-    _, (means, covs) = jax.lax.scan(step, (m0, p0_var * eye_d), obs)
-    return means, covs
+KALMAN = Method("kalman_filter", _init, _step, ensemble=False)

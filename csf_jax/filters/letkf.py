@@ -25,9 +25,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from csf_jax._checks import (check_filter_inputs, check_key, check_result_finite, promote)
-from csf_jax.filters.result import FilterResult, mark_nonfinite
-from csf_jax.ssm import StateSpaceModel, observed, propagate
+from csf_jax.filters.driver import Method, StepOutput, run
+from csf_jax.filters.enkf import check_standin
+from csf_jax.filters.result import FilterResult
+from csf_jax.ssm import StateSpaceModel, gaussian_standin, is_additive, observed, propagate
 
 
 class Localization(NamedTuple):
@@ -97,12 +98,12 @@ def letkf_analysis(forecast, y, model: StateSpaceModel, index, weight):
     n = forecast.shape[0]
     mean = forecast.mean(0)
     anom = forecast - mean
-    hx = jax.vmap(model.observe)(forecast).astype(forecast.dtype)
+    hx, R = gaussian_standin(model, forecast)
     y_mean = hx.mean(0)
     y_anom = hx - y_mean
     mask = observed(y)
     innov = jnp.where(mask, jnp.where(mask, y, 0.0) - y_mean, 0.0)
-    r_inv = 1.0 / jnp.diagonal(model.obs_noise.cov(y.shape[0], forecast.dtype))
+    r_inv = 1.0 / jnp.diagonal(R)
     obs_w = jnp.where(mask, r_inv, 0.0)
     eye = jnp.eye(n, dtype=forecast.dtype)
 
@@ -121,54 +122,63 @@ def letkf_analysis(forecast, y, model: StateSpaceModel, index, weight):
     return mean + local.T
 
 
-@functools.partial(jax.jit, static_argnames=("problem", "radius", "loc", "return_ensembles"))
-def _letkf_scan(obs, ensemble, key, inflation, *, problem, radius: float, loc: Localization,
-                return_ensembles: bool):
-    """The jitted scan; ``inflation`` is traced (one compilation serves a sweep over it)."""
-    index, weight = local_obs(loc, radius)
-    index = jnp.asarray(index)
-    inflation = jnp.asarray(inflation, ensemble.dtype)
+class LETKFStatic(NamedTuple):
+    """The LETKF's static settings for the driver: the half-width and the geometry."""
 
-    def step(ens, inputs):
-        k, y = inputs
-        forecast = propagate(problem, k, ens).astype(ens.dtype)
-        center = forecast.mean(0)
-        forecast = center + inflation * (forecast - center)
-        post = letkf_analysis(forecast, y, problem, index, weight)
-        return post, (post.mean(0), post.std(0, ddof=1), post if return_ensembles else None)
+    radius: float
+    localization: Localization
 
-    _, (mean, std, ens_out) = jax.lax.scan(step, ensemble,
-                                           (jax.random.split(key, obs.shape[0]), obs))
-    return FilterResult(mean=mean, std=std, ensembles=ens_out)
+
+def _init(model, static: LETKFStatic, inflation, ensemble, key):
+    return ensemble, key
+
+
+def _step(model: StateSpaceModel, static: LETKFStatic, inflation, ensemble, y, key, time):
+    """Forecast, inflate and analyse every site of ``ensemble (N, d)`` on ``y (m,)``."""
+    index, weight = local_obs(static.localization, static.radius)
+    forecast = propagate(model, key, ensemble).astype(ensemble.dtype)
+    center = forecast.mean(0)
+    forecast = center + inflation.astype(ensemble.dtype) * (forecast - center)
+    post = letkf_analysis(forecast, y, model, jnp.asarray(index), weight)
+    return post, StepOutput(post.mean(0), post.std(0, ddof=1), post)
+
+
+def _check(model: StateSpaceModel, static: LETKFStatic) -> None:
+    loc = static.localization
+    if len(loc.state) != model.dim or len(loc.obs) != model.obs_dim:
+        raise ValueError(f"letkf: the localization has {len(loc.state)} sites and "
+                         f"{len(loc.obs)} observations; the model has d={model.dim}, "
+                         f"m={model.obs_dim}")
+    if is_additive(model) and model.obs_noise.covariance is not None:
+        raise ValueError("letkf: needs uncorrelated observation noise (R-localisation divides by "
+                         "each observation's variance)")
+    check_standin("letkf")(model, static)
+
+
+LETKF = Method("letkf", _init, _step, _check)
 
 
 def letkf(obs, ensemble, *, problem: StateSpaceModel, key, localization: Localization,
-          config: LETKFConfig = LETKFConfig(), return_ensembles: bool = False,
-          check_finite: bool = True) -> FilterResult:
+          config: LETKFConfig = LETKFConfig(), inputs=None, return_ensembles: bool = False,
+          check_finite: bool = True, progress=None) -> FilterResult:
     """Run the LETKF.
 
     Args:
       obs: (K, m) observations; NaN marks a missing entry.  ensemble: (N, d) at time 0.
       problem: the model (static).  key: a ``jax.random.key`` (process noise only).
       localization: the positions of sites and observations (``ring_localization``).
-      config: localisation radius and inflation (``LETKFConfig``).
+      config: localisation radius and inflation (``LETKFConfig``); the inflation is traced, so a
+        sweep over it compiles once.
+      inputs: a time-varying model's per-step inputs (leading axis K), or None.
       return_ensembles: also return the (K, N, d) analysis ensembles.
       check_finite: raise FloatingPointError on a non-finite mean (concrete runs only).
+      progress: optional host callback ``k -> None`` at every step.
     Returns ``FilterResult(mean (K, d), std (K, d), ensembles | None, finite (K,))``.
     """
-    check_filter_inputs(obs, ensemble, problem, name="letkf")
-    check_key(key, name="letkf")
-    if len(localization.state) != problem.dim or len(localization.obs) != problem.obs_dim:
-        raise ValueError(f"letkf: the localization has {len(localization.state)} sites and "
-                         f"{len(localization.obs)} observations; the model has d={problem.dim}, "
-                         f"m={problem.obs_dim}")
-    if problem.obs_noise.covariance is not None:
-        raise ValueError("letkf: needs uncorrelated observation noise (R-localisation divides by "
-                         "each observation's variance)")
-    obs, ensemble = promote(obs, ensemble)
-    result = mark_nonfinite(_letkf_scan(obs, ensemble, key, config.inflation, problem=problem,
-                                        radius=float(config.radius), loc=localization,
-                                        return_ensembles=bool(return_ensembles)), obs)
-    if check_finite:
-        check_result_finite("letkf", result)
-    return result
+    if not isinstance(localization, Localization):
+        raise TypeError(f"letkf: localization must be a csf_jax.Localization (e.g. "
+                        f"csf_jax.ring_localization(d, sites)), got {type(localization).__name__}")
+    return run(LETKF, obs, ensemble, model=problem, key=key,
+               config=LETKFStatic(float(config.radius), localization),
+               params=jnp.asarray(config.inflation), inputs=inputs,
+               return_ensembles=return_ensembles, check_finite=check_finite, progress=progress)

@@ -44,13 +44,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from csf_jax import _checks, _linalg
+from csf_jax import _linalg
+from csf_jax.filters.driver import Method, StepOutput, run
 from csf_jax.filters.letkf import Localization
-from csf_jax.filters.result import FilterResult, mark_nonfinite
+from csf_jax.filters.result import FilterResult
 from csf_jax.local_prior import (LocalStats, local_statistics, precision_blocks,
                                  precision_matvec, precision_noise)
 from csf_jax.sde import bridge, marginal_std_host, noise_levels
-from csf_jax.ssm import StateSpaceModel, log_likelihood, observed, process_draws, residual
+from csf_jax.ssm import (StateSpaceModel, is_additive, log_likelihood, observed, process_draws,
+                         residual)
 
 
 SAMPLERS = ("flow", "ancestral")
@@ -290,29 +292,41 @@ def flow_sample(model: StateSpaceModel, y, prior_ens, stats: LocalStats, config:
     return post_tweedie(x, u, rev[-1])
 
 
-@functools.partial(jax.jit, static_argnames=("model", "config", "return_ensembles", "progress"))
-def _local_scan(obs, ensemble, key, sites, *, model: StateSpaceModel, config: LocalCSFConfig,
-                return_ensembles: bool, progress=None) -> FilterResult:
-    """The jitted scan; ``sites (m,)`` int32, the observations' sites."""
+def _init(model, config: LocalCSFConfig, sites, ensemble, key):
+    return ensemble, key
 
-    def filter_step(ens, inputs):
-        k, y, key_k = inputs
-        if progress is not None:
-            jax.debug.callback(progress, k)
-        k_prop, k_rev = jax.random.split(key_k)
-        prior_ens = jax.vmap(model.drift)(ens) + process_draws(model, k_prop, ens.shape, ens.dtype)
-        centre = prior_ens.mean(0)
-        prior_ens = centre + config.inflation * (prior_ens - centre)
-        stats = local_statistics(prior_ens, config.half_width, config.ridge, config.floor)
-        if config.sampler == "flow":
-            post = flow_sample(model, y, prior_ens, stats, config, sites)
-        else:
-            post = ancestral_sample(model, y, prior_ens, stats, k_rev, config, sites)
-        return post, (post.mean(0), post.std(0), post if return_ensembles else None)
 
-    _, (mean, std, ens_out) = jax.lax.scan(
-        filter_step, ensemble, (jnp.arange(obs.shape[0]), obs, jax.random.split(key, obs.shape[0])))
-    return FilterResult(mean=mean, std=std, ensembles=ens_out)
+def _step(model: StateSpaceModel, config: LocalCSFConfig, sites, ensemble, y, key, time):
+    """Propagate, inflate, estimate the local prior and sample the posterior; ``sites (m,)``."""
+    k_prop, k_rev = jax.random.split(key)
+    prior_ens = jax.vmap(model.drift)(ensemble) + process_draws(model, k_prop, ensemble.shape,
+                                                                ensemble.dtype)
+    centre = prior_ens.mean(0)
+    prior_ens = centre + config.inflation * (prior_ens - centre)
+    stats = local_statistics(prior_ens, config.half_width, config.ridge, config.floor)
+    if config.sampler == "flow":
+        post = flow_sample(model, y, prior_ens, stats, config, sites)
+    else:
+        post = ancestral_sample(model, y, prior_ens, stats, k_rev, config, sites)
+    return post, StepOutput(post.mean(0), post.std(0), post)
+
+
+def _check(model: StateSpaceModel, config: LocalCSFConfig) -> None:
+    if not is_additive(model) or model.time_varying:
+        raise ValueError("local_filter: needs a time-invariant point sensor with additive noise "
+                         "(not a Likelihood, not time_varying)")
+    if model.obs_noise.covariance is not None:
+        raise ValueError("local_filter: needs uncorrelated observation noise")
+    if 2 * config.half_width + 1 > model.dim:
+        raise ValueError(f"local_filter: the neighbourhood ({2 * config.half_width + 1} sites) is "
+                         f"wider than the ring (d={model.dim})")
+    if model.dim % (2 * config.block):
+        raise ValueError(f"local_filter: d={model.dim} must be a multiple of 2 x block "
+                         f"(LocalCSFConfig.block={config.block}): the preconditioner's blocks "
+                         f"alternate in two colours around the ring")
+
+
+LOCAL_CSF = Method("local_filter", _init, _step, _check)
 
 
 def _probe(model: StateSpaceModel):
@@ -365,23 +379,11 @@ def local_filter(obs, ensemble, *, problem: StateSpaceModel, key,
     Returns ``FilterResult(mean (K, d), std (K, d), ensembles | None, finite (K,))``; jit-able
     (bind the keywords statically) and vmap-able over ``(obs, ensemble, key)``.
     """
-    _checks.check_filter_inputs(obs, ensemble, problem, name="local_filter")
-    _checks.check_key(key, name="local_filter")
-    if problem.obs_noise.covariance is not None:
-        raise ValueError("local_filter: needs uncorrelated observation noise")
-    if 2 * config.half_width + 1 > problem.dim:
-        raise ValueError(f"local_filter: the neighbourhood ({2 * config.half_width + 1} sites) is "
-                         f"wider than the ring (d={problem.dim})")
-    if problem.dim % (2 * config.block):
-        raise ValueError(f"local_filter: d={problem.dim} must be a multiple of 2 x block "
-                         f"(LocalCSFConfig.block={config.block}): the preconditioner's blocks "
-                         f"alternate in two colours around the ring")
-    obs, ensemble = _checks.promote(obs, ensemble)
+    if not isinstance(localization, Localization):
+        raise TypeError(f"local_filter: localization must be a csf_jax.Localization (e.g. "
+                        f"csf_jax.ring_localization(d, sites)), got {type(localization).__name__}")
+    _check(problem, config)
     sites = point_sites(problem, localization, _probe(problem))
-    result = mark_nonfinite(_local_scan(obs, ensemble, key, jnp.asarray(sites),
-                                        model=problem, config=config,
-                                        return_ensembles=bool(return_ensembles),
-                                        progress=progress), obs)
-    if check_finite:
-        _checks.check_result_finite("local_filter", result)
-    return result
+    return run(LOCAL_CSF, obs, ensemble, model=problem, key=key, config=config,
+               params=jnp.asarray(sites), return_ensembles=return_ensembles,
+               check_finite=check_finite, progress=progress)

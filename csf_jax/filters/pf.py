@@ -7,20 +7,20 @@ effective sample size, then resamples systematically to an equally weighted ense
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 from jax.scipy.special import logsumexp
 
-from csf_jax._checks import check_filter_inputs, check_key, check_result_finite, promote
-from csf_jax.filters.result import FilterResult, mark_nonfinite
+from csf_jax.filters.driver import Method, StepOutput, run
+from csf_jax.filters.result import FilterResult
 from csf_jax.ssm import StateSpaceModel, log_likelihood, propagate
 
 
-def particle_filter(obs, ensemble, *, problem: StateSpaceModel, key, return_ensembles: bool = False,
-                    check_finite: bool = True) -> FilterResult:
+def particle_filter(obs, ensemble, *, problem: StateSpaceModel, key, inputs=None,
+                    return_ensembles: bool = False, check_finite: bool = True,
+                    progress=None) -> FilterResult:
     """Run the bootstrap particle filter.
 
     Args:
@@ -29,8 +29,10 @@ def particle_filter(obs, ensemble, *, problem: StateSpaceModel, key, return_ense
       ensemble: (N, d) equally weighted particles at time 0.
       problem: the state-space model (static: a hashable NamedTuple).
       key: a JAX PRNG key; the same key gives the same result.
+      inputs: a time-varying model's per-step inputs (leading axis K), or None.
       return_ensembles: also return the resampled posterior ensembles (K, N, d).
       check_finite: raise FloatingPointError if the mean becomes non-finite (concrete runs only).
+      progress: optional host callback ``k -> None`` at every step.
 
     Returns:
       ``FilterResult(mean (K, d), std (K, d), ensembles (K, N, d) | None, ess (K,), finite (K,))``;
@@ -38,14 +40,8 @@ def particle_filter(obs, ensemble, *, problem: StateSpaceModel, key, return_ense
       Under jit/vmap, mean and std are NaN and ``finite`` False from a non-finite step on
       (``mark_nonfinite``).
     """
-    check_filter_inputs(obs, ensemble, problem, name="particle_filter")
-    check_key(key, name="particle_filter")
-    obs, ensemble = promote(obs, ensemble)
-    result = mark_nonfinite(_particle_filter(obs, ensemble, key, problem=problem,
-                                             return_ensembles=bool(return_ensembles)), obs)
-    if check_finite:
-        check_result_finite("particle_filter", result)
-    return result
+    return run(PARTICLE_FILTER, obs, ensemble, model=problem, key=key, inputs=inputs,
+               return_ensembles=return_ensembles, check_finite=check_finite, progress=progress)
 
 
 def systematic_resample(key, log_weights):
@@ -99,25 +95,16 @@ def sir_step(problem: StateSpaceModel, key, ensemble, y) -> SIRStep:
     return SIRStep(particles, log_w, particles[systematic_resample(k_res, log_w)])
 
 
-def _pf_step(model: StateSpaceModel, return_ensembles: bool, ensemble, key, y):
+def _init(model, config, params, ensemble, key):
+    return ensemble, key
+
+
+def _step(model: StateSpaceModel, config, params, ensemble, y, key, time):
     """One SIR step on ``ensemble (N, d)`` with observation ``y (m,)``, with its outputs."""
     step = sir_step(model, key, ensemble, y)
     mean, std = weighted_moments(step.prior, step.log_weights)
-    ess = effective_sample_size(step.log_weights)
-    out = (mean, std, step.posterior if return_ensembles else None, ess)
-    return step.posterior, out
+    return step.posterior, StepOutput(mean, std, step.posterior,
+                                      {"ess": effective_sample_size(step.log_weights)})
 
 
-@functools.partial(jax.jit, static_argnames=("problem", "return_ensembles"))
-def _particle_filter(obs, ensemble, key, *, problem: StateSpaceModel,
-                     return_ensembles: bool) -> FilterResult:
-    """The jitted scan over time; inputs already checked and promoted to one float dtype.
-    ``obs (K, m)``, ``ensemble (N, d)``."""
-    keys = jax.random.split(key, obs.shape[0])
-
-    def step(ens, inputs):
-        k, y = inputs
-        return _pf_step(problem, return_ensembles, ens, k, y)
-
-    _, (mean, std, ensembles, ess) = jax.lax.scan(step, ensemble, (keys, obs))
-    return FilterResult(mean=mean, std=std, ensembles=ensembles, ess=ess)
+PARTICLE_FILTER = Method("particle_filter", _init, _step)

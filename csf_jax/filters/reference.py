@@ -26,7 +26,6 @@ and ``tests/test_reference.py`` checks it against the Kalman filter on a linear-
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
 import jax
@@ -34,9 +33,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import logsumexp
 
-from csf_jax._checks import check_filter_inputs, check_key, check_result_finite, promote
-from csf_jax.filters.result import FilterResult, mark_nonfinite
-from csf_jax.ssm import StateSpaceModel, is_isotropic, observed
+from csf_jax import _checks
+from csf_jax.filters.driver import Method, StepOutput, run
+from csf_jax.filters.result import FilterResult
+from csf_jax.ssm import StateSpaceModel, entry_log_likelihood, is_additive, is_isotropic
 
 
 class ReferenceConfig(NamedTuple):
@@ -66,7 +66,9 @@ def shock_probability(model: StateSpaceModel, num_steps: int, draws: int = 4096,
 
 def check_separable(model: StateSpaceModel, name: str = "reference_filter") -> None:
     """Refuse a model whose observation does not see each coordinate on its own (``y_i = h(x_i) + w_i``)."""
-    if not is_isotropic(model) or model.obs_noise.covariance is not None:
+    if model.time_varying:
+        raise ValueError(f"{name}: needs a time-invariant model")
+    if not is_isotropic(model) or (is_additive(model) and model.obs_noise.covariance is not None):
         raise ValueError(f"{name}: needs i.i.d. process and observation noise (the model has a "
                          f"structured process_noise or a noise covariance)")
     if model.obs_dim != model.dim:
@@ -80,12 +82,9 @@ def check_separable(model: StateSpaceModel, name: str = "reference_filter") -> N
 
 
 def _coordinate_loglik(model: StateSpaceModel, y, particles):
-    """``(M, d)`` log p(y_j | x_j) of every particle of every coordinate (i.i.d. noise); 0 where
-    ``y_j`` is missing (NaN)."""
-    mask = observed(y)
-    resid = jnp.where(mask, y, 0.0) - jax.vmap(model.observe)(particles)
-    return jnp.where(mask, jax.vmap(jax.vmap(lambda r: model.obs_noise.log_prob(r[None])))(resid),
-                     0.0)
+    """``(M, d)`` log p(y_j | x_j) of every particle of every coordinate (entries independent);
+    0 where ``y_j`` is missing (NaN)."""
+    return jax.vmap(lambda x: entry_log_likelihood(model, y, x))(particles)
 
 
 def _resample_columns(key, candidates, log_w, m: int):
@@ -100,40 +99,47 @@ def _resample_columns(key, candidates, log_w, m: int):
     return jnp.take_along_axis(candidates, idx, axis=0)
 
 
-@functools.partial(jax.jit, static_argnames=("model", "model_shocks"))
-def _reference_scan(obs, particles, shock_prob, key, *, model: StateSpaceModel, model_shocks: bool):
-    m = particles.shape[0]
+def _init(model, config: ReferenceConfig, shock_prob, particles, key):
+    return particles, key
 
-    def step(parts, inputs):
-        y, p_shock, key_k = inputs
-        k_prop, k_shock, k_roll, k_res = jax.random.split(key_k, 4)
-        # systematic resampling leaves every column sorted by ancestor: roll each column by its own
-        # random offset, so that a row pairs unrelated particles before a coupled drift sees it
-        offset = jax.random.randint(k_roll, (1, model.dim), 0, m)
-        parts = jnp.take_along_axis(parts, (jnp.arange(m)[:, None] + offset) % m, axis=0)
-        prior = (jax.vmap(model.drift)(parts)
-                 + model.process_std * jax.random.normal(k_prop, parts.shape, parts.dtype))
-        ll0 = _coordinate_loglik(model, y, prior)
-        if not model_shocks:
-            post = _resample_columns(k_res, prior, ll0, m)
-            weights = ll0
-            return post, _moments(prior, weights)
-        shocked = jax.vmap(model.shock)(jax.random.split(k_shock, m), prior)
-        ll1 = _coordinate_loglik(model, y, shocked)
-        # log predictive likelihood of each hypothesis: product over coordinates
-        ev0 = jnp.sum(logsumexp(ll0, axis=0) - jnp.log(m))
-        ev1 = jnp.sum(logsumexp(ll1, axis=0) - jnp.log(m))
-        lp0 = jnp.log1p(-p_shock) + ev0
-        lp1 = jnp.where(p_shock > 0, jnp.log(jnp.maximum(p_shock, 1e-30)) + ev1, -jnp.inf)
-        share = jnp.exp(lp1 - jnp.logaddexp(lp0, lp1))  # posterior probability of a shock
-        candidates = jnp.concatenate([prior, shocked], axis=0)
-        log_w = _candidate_weights(share, ll0, ll1)
-        post = _resample_columns(k_res, candidates, log_w, m)
-        return post, _moments(candidates, log_w)
 
-    keys = jax.random.split(key, obs.shape[0])
-    _, (mean, std) = jax.lax.scan(step, particles, (obs, shock_prob, keys))
-    return mean, std
+def _step(model: StateSpaceModel, config: ReferenceConfig, shock_prob, parts, y, key, time):
+    """One step of the per-coordinate filters ``particles (M, d)``; ``shock_prob (K,)``."""
+    m = parts.shape[0]
+    k_prop, k_shock, k_roll, k_res = jax.random.split(key, 4)
+    # systematic resampling leaves every column sorted by ancestor: roll each column by its own
+    # random offset, so that a row pairs unrelated particles before a coupled drift sees it
+    offset = jax.random.randint(k_roll, (1, model.dim), 0, m)
+    parts = jnp.take_along_axis(parts, (jnp.arange(m)[:, None] + offset) % m, axis=0)
+    prior = (jax.vmap(model.drift)(parts)
+             + model.process_std * jax.random.normal(k_prop, parts.shape, parts.dtype))
+    ll0 = _coordinate_loglik(model, y, prior)
+    if not config.model_shocks:
+        post = _resample_columns(k_res, prior, ll0, m)
+        return post, StepOutput(*_moments(prior, ll0))
+    p_shock = shock_prob[time.k - 1].astype(parts.dtype)
+    shocked = jax.vmap(model.shock)(jax.random.split(k_shock, m), prior)
+    ll1 = _coordinate_loglik(model, y, shocked)
+    # log predictive likelihood of each hypothesis: product over coordinates
+    ev0 = jnp.sum(logsumexp(ll0, axis=0) - jnp.log(m))
+    ev1 = jnp.sum(logsumexp(ll1, axis=0) - jnp.log(m))
+    lp0 = jnp.log1p(-p_shock) + ev0
+    lp1 = jnp.where(p_shock > 0, jnp.log(jnp.maximum(p_shock, 1e-30)) + ev1, -jnp.inf)
+    share = jnp.exp(lp1 - jnp.logaddexp(lp0, lp1))  # posterior probability of a shock
+    candidates = jnp.concatenate([prior, shocked], axis=0)
+    log_w = _candidate_weights(share, ll0, ll1)
+    post = _resample_columns(k_res, candidates, log_w, m)
+    return post, StepOutput(*_moments(candidates, log_w))
+
+
+def _check(model: StateSpaceModel, config: ReferenceConfig) -> None:
+    check_separable(model)
+    if int(config.particles) < 2 or int(config.shock_draws) < 1:
+        raise ValueError(f"reference_filter: needs particles >= 2 and shock_draws >= 1, got "
+                         f"{config.particles} and {config.shock_draws}")
+
+
+REFERENCE = Method("reference_filter", _init, _step, _check)
 
 
 def _candidate_weights(share, ll0, ll1):
@@ -166,24 +172,18 @@ def reference_filter(obs, ensemble, *, problem: StateSpaceModel, key,
       ``FilterResult(mean (K, d), std (K, d))``: the weighted moments of the mixture over the
       shock hypotheses, before resampling.
     """
-    check_filter_inputs(obs, ensemble, problem, name="reference_filter")
-    check_key(key, name="reference_filter")
-    check_separable(problem)
-    if int(config.particles) < 2 or int(config.shock_draws) < 1:
-        raise ValueError(f"reference_filter: needs particles >= 2 and shock_draws >= 1, got "
-                         f"{config.particles} and {config.shock_draws}")
-    obs, ensemble = promote(obs, ensemble)
+    _checks.check_filter_inputs(obs, ensemble, problem, name="reference_filter")
+    _checks.check_key(key, name="reference_filter")
+    _check(problem, config)
     k_init, k_run = jax.random.split(key)
     m = int(config.particles)
+    ensemble = jnp.asarray(ensemble)
     if ensemble.shape[0] != m:
         idx = jax.random.randint(k_init, (m, problem.dim), 0, ensemble.shape[0])
         ensemble = jnp.take_along_axis(ensemble, idx, axis=0)
-    K = obs.shape[0]
+    K = jnp.shape(obs)[0]
     p = (shock_probability(problem, K, config.shock_draws) if config.model_shocks
          else np.zeros(K))
-    mean, std = _reference_scan(obs, ensemble, jnp.asarray(p, obs.dtype), k_run, model=problem,
-                                model_shocks=bool(config.model_shocks))
-    result = mark_nonfinite(FilterResult(mean=mean, std=std), obs)
-    if check_finite:
-        check_result_finite("reference_filter", result)
-    return result
+    return run(REFERENCE, obs, ensemble, model=problem, key=k_run, config=config,
+               params=jnp.asarray(p, jnp.result_type(jnp.asarray(obs).dtype, ensemble.dtype)),
+               check_finite=check_finite)

@@ -1,4 +1,4 @@
-"""The result type shared by every filter (CSF, SF, PF, EnKF, Kalman)."""
+"""The result type shared by every filter."""
 
 from __future__ import annotations
 
@@ -22,6 +22,9 @@ class FilterResult(NamedTuple):
         are missing, not bad. Concrete calls refuse infinite observations and raise on a
         non-finite mean (``check_finite=True``), so this matters under ``jax.jit``/``jax.vmap``.
         None only for results built by hand.
+      info: dict of per-step diagnostics ``(K,)``, or None: CSF's ``bandwidth`` (the kernel
+        bandwidth h of its mixture prior, 1 = the ensemble's Gaussian) and ``shock_weight`` (the
+        posterior weight of the broad shock component).
     """
 
     mean: jax.Array
@@ -29,6 +32,7 @@ class FilterResult(NamedTuple):
     ensembles: Optional[jax.Array] = None
     ess: Optional[jax.Array] = None
     finite: Optional[jax.Array] = None
+    info: Optional[dict] = None
 
 
 def mark_nonfinite(result: FilterResult, obs) -> FilterResult:

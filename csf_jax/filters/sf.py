@@ -12,16 +12,16 @@ One jitted ``lax.scan`` over the K observations, carrying (ensemble, score-net v
 from __future__ import annotations
 
 import dataclasses
-import functools
-from typing import Callable, Optional
+from typing import Callable, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
 import optax
 
-from csf_jax import _checks, networks
+from csf_jax import networks
 from csf_jax.filters.csf import CSFConfig, particle_sampler, sampler_start
-from csf_jax.filters.result import FilterResult, mark_nonfinite
+from csf_jax.filters.driver import Method, StepOutput, run
+from csf_jax.filters.result import FilterResult
 from csf_jax.prior import unconditional_prior
 from csf_jax.ssm import StateSpaceModel, process_draws
 from csf_jax.dsm import dsm_fit
@@ -53,54 +53,67 @@ class SFConfig:
             raise ValueError(f"SFConfig.lr must be > 0, got {self.lr!r}")
 
 
-@functools.partial(jax.jit, static_argnames=("model", "config", "sampler", "return_ensembles",
-                                             "progress", "shards"))
-def _sf_scan(obs, ensemble, key, *, model: StateSpaceModel, config: SFConfig, sampler: CSFConfig,
-             return_ensembles: bool, progress, shards: int = 1) -> FilterResult:
+class SFStatic(NamedTuple):
+    """SF's static settings for the driver."""
+
+    config: SFConfig
+    sampler: CSFConfig
+    shards: int = 1
+
+
+def _optimizer(config: SFConfig):
+    return optax.adam(config.lr)
+
+
+def _init(model: StateSpaceModel, static: SFStatic, params, ensemble, key):
+    """A fresh score net, trained ``warmup_steps`` on the initial ensemble; carry
+    ``(ensemble, score variables, Adam state)``."""
+    config, sampler = static.config, static.sampler
     net = config.network
-    if net.sigma_max != sampler.sigma_max:
-        raise ValueError(f"SFConfig.network.sigma_max ({net.sigma_max}) must equal the sampler's "
-                         f"sigma_max ({sampler.sigma_max})")
-    prior = unconditional_prior(net)
-    sample = particle_sampler(model, prior, sampler)
-    optimizer = optax.adam(config.lr)
-    K = obs.shape[0]
+    optimizer = _optimizer(config)
     k_init, k_warm, k_scan = jax.random.split(key, 3)
-    params = networks.init_params(k_init, net, model.dim)
-    score_vars = jax.tree_util.tree_map(lambda a: a.astype(ensemble.dtype), params["score"])
+    init = networks.init_params(k_init, net, model.dim)
+    score_vars = jax.tree_util.tree_map(lambda a: a.astype(ensemble.dtype), init["score"])
     opt_state = optimizer.init(score_vars)
     if config.warmup_steps:
         score_vars, opt_state, _ = dsm_fit(k_warm, ensemble, score_vars, opt_state, optimizer,
                                            config=net, steps=config.warmup_steps,
-                                           batch=config.batch, t_min=sampler.t_min, shards=shards)
+                                           batch=config.batch, t_min=sampler.t_min,
+                                           shards=static.shards)
+    return (ensemble, score_vars, opt_state), k_scan
 
-    def filter_step(carry, inputs):
-        ens, sv, o = carry
-        k, y, key_k = inputs
-        if progress is not None:
-            jax.debug.callback(progress, k)
-        k_prop, k_fit, k_x, k_rev = jax.random.split(key_k, 4)
-        centers = jax.vmap(model.drift)(ens)
-        prior_ens = centers + process_draws(model, k_prop, ens.shape, ens.dtype)
-        sv, o, losses = dsm_fit(k_fit, prior_ens, sv, o, optimizer, config=net,
-                                steps=config.train_steps, batch=config.batch, t_min=sampler.t_min,
-                                shards=shards)
-        full = {"encoder": None, "score": sv}
-        context = prior.condition(full, centers, prior_ens, model.process_std)
-        guide = jnp.where((k > 0) | sampler.assimilate_first, 1.0, 0.0).astype(ens.dtype)
-        x_init, start = sampler_start(sampler, prior_ens, k_x, y, model, guide)
-        post = sample(full, context, y, x_init, start, k_rev, guide)
-        out = (post.mean(0), post.std(0), post if return_ensembles else None, losses[-1])
-        return (post, sv, o), out
 
-    _, (mean, std, ens_out, _) = jax.lax.scan(
-        filter_step, (ensemble, score_vars, opt_state),
-        (jnp.arange(K), obs, jax.random.split(k_scan, K)))
-    return FilterResult(mean=mean, std=std, ensembles=ens_out)
+def _step(model: StateSpaceModel, static: SFStatic, params, state, y, key, time):
+    """Propagate, train the score net on the prior ensemble, sample the posterior."""
+    config, sampler = static.config, static.sampler
+    net = config.network
+    ens, sv, o = state
+    k_prop, k_fit, k_x, k_rev = jax.random.split(key, 4)
+    centers = jax.vmap(model.drift)(ens)
+    prior_ens = centers + process_draws(model, k_prop, ens.shape, ens.dtype)
+    sv, o, _ = dsm_fit(k_fit, prior_ens, sv, o, _optimizer(config), config=net,
+                       steps=config.train_steps, batch=config.batch, t_min=sampler.t_min,
+                       shards=static.shards)
+    prior = unconditional_prior(net)
+    full = {"encoder": None, "score": sv}
+    context = prior.condition(full, centers, prior_ens, model.process_std)
+    guide = jnp.where((time.k > 1) | sampler.assimilate_first, 1.0, 0.0).astype(ens.dtype)
+    x_init, start = sampler_start(sampler, prior_ens, k_x, y, model, guide)
+    post = particle_sampler(model, prior, sampler)(full, context, y, x_init, start, k_rev, guide)
+    return (post, sv, o), StepOutput(post.mean(0), post.std(0), post)
+
+
+def _check(model: StateSpaceModel, static: SFStatic) -> None:
+    if static.config.network.sigma_max != static.sampler.sigma_max:
+        raise ValueError(f"SFConfig.network.sigma_max ({static.config.network.sigma_max}) must "
+                         f"equal the sampler's sigma_max ({static.sampler.sigma_max})")
+
+
+SCORE_FILTER = Method("score_filter", _init, _step, _check)
 
 
 def score_filter(obs, ensemble, *, problem: StateSpaceModel, key, config: SFConfig = SFConfig(),
-                 sampler: CSFConfig = CSFConfig(), return_ensembles: bool = False,
+                 sampler: CSFConfig = CSFConfig(), inputs=None, return_ensembles: bool = False,
                  check_finite: bool = True,
                  progress: Optional[Callable[[jax.Array], None]] = None,
                  shards: int = 1) -> FilterResult:
@@ -113,7 +126,9 @@ def score_filter(obs, ensemble, *, problem: StateSpaceModel, key, config: SFConf
       problem: the ``StateSpaceModel`` (static: hashable).
       key: a ``jax.random.key``; it also initialises the score net. Same key, same result.
       config: the per-step training budget and network (``SFConfig``).
-      sampler: reverse-SDE and guidance settings, shared with CSF (``CSFConfig``).
+      sampler: reverse-SDE and guidance settings, shared with CSF (``CSFConfig``; SF samples from
+        its own score net alone, without CSF's mixture prior).
+      inputs: a time-varying model's per-step inputs (leading axis K), or None.
       return_ensembles: also return the (K, N, d) posterior ensembles.
       check_finite: when called outside jit/vmap, raise FloatingPointError if the filter diverged.
       progress: optional host callback ``k -> None`` called at the start of every filter step
@@ -128,17 +143,11 @@ def score_filter(obs, ensemble, *, problem: StateSpaceModel, key, config: SFConf
       ``jax.vmap`` over ``(obs, ensemble, key)``; there mean and std are NaN and ``finite`` False
       from a non-finite step on (``mark_nonfinite``).
     """
-    _checks.check_filter_inputs(obs, ensemble, problem, name="score_filter")
-    _checks.check_key(key, name="score_filter")
-    obs, ensemble = _checks.promote(obs, ensemble)
     if isinstance(shards, bool) or not isinstance(shards, int) or shards < 1 \
             or config.batch % shards or shards > jax.local_device_count():
         raise ValueError(f"score_filter: shards must be a positive int dividing SFConfig.batch "
                          f"({config.batch}) and at most the {jax.local_device_count()} local "
                          f"devices, got {shards!r}")
-    result = mark_nonfinite(_sf_scan(obs, ensemble, key, model=problem, config=config,
-                                     sampler=sampler, return_ensembles=return_ensembles,
-                                     progress=progress, shards=shards), obs)
-    if check_finite:
-        _checks.check_result_finite("score_filter", result)
-    return result
+    return run(SCORE_FILTER, obs, ensemble, model=problem, key=key,
+               config=SFStatic(config, sampler, shards), inputs=inputs,
+               return_ensembles=return_ensembles, check_finite=check_finite, progress=progress)

@@ -1,9 +1,10 @@
-"""The paper's problems and Lorenz-96, looked up by name: ``csf_jax.problems.get("double_well")``.
+"""The paper's problems, Lorenz-96 and the zoo, looked up by name: ``csf_jax.problems.get("ungm")``.
 
 Each name maps to a frozen config (defaults = the README's tables) and a builder; ``get(name,
 **overrides)`` replaces config fields, e.g. ``get("cubic10_indep", num_steps=50)`` or
 ``get("lorenz96", dim=1000)``. ``NAMES`` are the paper's seven problems (the table's columns);
-``BENCHMARKS`` the Lorenz-96 setups beyond the paper.
+``BENCHMARKS`` the Lorenz-96 setups beyond the paper; ``ZOO`` the benchmark of unseen models
+(``csf_jax.problems.zoo``).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import dataclasses
 
 from csf_jax.problems.cubic import CubicConfig, cubic_problem
 from csf_jax.problems.lorenz96 import Lorenz96Config, lorenz96_problem
+from csf_jax.problems import zoo
 from csf_jax.problems.wells import WellConfig, well_problem
 from csf_jax.ssm import StateSpaceModel
 
@@ -34,30 +36,40 @@ BENCHMARKS = {
 }
 
 
+ZOO = dict(zoo.CONFIGS)
+
+
 def config(name: str, **overrides):
     """The frozen config of problem ``name``, with ``overrides`` applied."""
-    known = {**CONFIGS, **BENCHMARKS}
+    known = {**CONFIGS, **BENCHMARKS, **ZOO}
     if name not in known:
         raise KeyError(f"unknown problem {name!r}; known: {', '.join(known)}")
+    fields = {f.name for f in dataclasses.fields(known[name])}
+    unknown = sorted(set(overrides) - fields)
+    if unknown:
+        raise TypeError(f"problem {name!r} has no field(s) {', '.join(unknown)}; its fields: "
+                        f"{', '.join(sorted(fields))}")
     return dataclasses.replace(known[name], **overrides)
 
 
 def build(cfg) -> StateSpaceModel:
-    """The model for a config (``WellConfig`` or ``CubicConfig``)."""
+    """The model for a config (any of ``config``'s)."""
     if isinstance(cfg, WellConfig):
         return well_problem(cfg)
     if isinstance(cfg, CubicConfig):
         return cubic_problem(cfg)
     if isinstance(cfg, Lorenz96Config):
         return lorenz96_problem(cfg)
+    if type(cfg) in zoo.BUILDERS:
+        return zoo.BUILDERS[type(cfg)](cfg)
     raise TypeError(f"no problem builder for config type {type(cfg).__name__}")
 
 
 def get(name: str, **overrides) -> StateSpaceModel:
-    """The ``StateSpaceModel`` of problem ``name`` (``NAMES`` or ``BENCHMARKS``), with config
-    ``overrides``."""
+    """The ``StateSpaceModel`` of problem ``name`` (``NAMES``, ``BENCHMARKS`` or ``ZOO``), with
+    config ``overrides``."""
     return build(config(name, **overrides))
 
 
-__all__ = ["BENCHMARKS", "CONFIGS", "NAMES", "CubicConfig", "Lorenz96Config", "WellConfig", "build",
+__all__ = ["BENCHMARKS", "CONFIGS", "NAMES", "ZOO", "zoo", "CubicConfig", "Lorenz96Config", "WellConfig", "build",
            "config", "get", "cubic_problem", "lorenz96_problem", "well_problem"]

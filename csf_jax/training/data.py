@@ -31,7 +31,7 @@ import numpy as np
 
 from csf_jax import problems
 from csf_jax.filters.pf import sir_step
-from csf_jax.ssm import simulate
+from csf_jax.ssm import at_step, simulate, steps
 from csf_jax.trained import model_fingerprint
 
 
@@ -92,13 +92,13 @@ def rollout_priors(model, key, num_particles: int, keep: int, stride: int):
     ensemble = model.initial_ensemble(k_init, num_particles)
 
     def step(ens, inputs):
-        y, k_step, k_keep = inputs
-        out = sir_step(model, k_step, ens, y)
+        y, k_step, k_keep, time = inputs
+        out = sir_step(at_step(model, time), k_step, ens, y)
         idx = jax.random.choice(k_keep, num_particles, (keep,), replace=False)
         return out.posterior, out.prior[idx]
 
     K = obs.shape[0]
-    inputs = (obs, jax.random.split(k_pf, K), jax.random.split(k_sub, K))
+    inputs = (obs, jax.random.split(k_pf, K), jax.random.split(k_sub, K), steps(K))
     _, priors = jax.lax.scan(step, ensemble, inputs)
     return priors[stride - 1::stride]
 

@@ -26,10 +26,11 @@ import time
 from typing import Optional, Union
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from csf_jax import networks, problems
-from csf_jax.ssm import StateSpaceModel
+from csf_jax.ssm import StateSpaceModel, Step, at_step
 from csf_jax.trained import TrainedPrior, model_fingerprint
 from csf_jax.training.data import DatasetConfig, generate, load
 from csf_jax.training.train import TrainConfig, train
@@ -58,7 +59,15 @@ def _check_model(model) -> StateSpaceModel:
     if np.shape(x) != (4, model.dim):
         raise ValueError(f"train_prior: model {model.name!r}: initial_ensemble(key, 4) has shape "
                          f"{np.shape(x)}, expected (4, {model.dim})")
-    fx, hx = jax.vmap(model.drift)(x), jax.vmap(model.observe)(x)
+    probe = at_step(model, Step(jnp.asarray(1, jnp.int32), None))
+    try:
+        fx, hx = jax.vmap(probe.drift)(x), jax.vmap(probe.observe)(x)
+    except (TypeError, AttributeError) as e:
+        if not model.time_varying:
+            raise
+        raise ValueError(f"train_prior: model {model.name!r} is time-varying and its drift or "
+                         f"observe needs a per-step input (step.u); train_prior records rollouts "
+                         f"without inputs ({type(e).__name__}: {e})") from None
     if np.shape(fx) != (4, model.dim) or np.shape(hx) != (4, model.obs_dim):
         raise ValueError(f"train_prior: model {model.name!r}: drift gives {np.shape(fx)[1:]} and "
                          f"observe {np.shape(hx)[1:]} per particle; expected ({model.dim},) and "

@@ -1,0 +1,106 @@
+"""The one driver behind every filter: a filter supplies ``init`` and ``step``; the driver owns the
+rest.
+
+    run(method, obs, state0, model=, key=, config=, params=, inputs=)
+      checks (shapes, dtypes, inf, keys, inputs), promotion to one float dtype,
+      init -> one jitted lax.scan over y_1 .. y_K:
+          model bound to the step (time index k, input u_k: ``ssm.at_step``), progress callback,
+          state, out = step(model_k, config, params, state, y_k, key_k, step_k)
+      -> mark_nonfinite -> FilterResult, FloatingPointError on a diverged concrete run.
+
+A ``Method`` is a NamedTuple of module-level functions, so it is hashable and a jitted scan is
+compiled once per (method, model, config). ``config`` is the method's static settings (hashable);
+``params`` its array-valued ones (network weights, an inflation factor), traced. NaN in ``obs``
+means 'not observed' and reaches ``step`` as is: each method leaves it out of its update.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any, Callable, NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+
+from csf_jax import _checks
+from csf_jax.filters.result import FilterResult, mark_nonfinite
+from csf_jax.ssm import StateSpaceModel, at_step, steps
+
+
+class StepOutput(NamedTuple):
+    """What a method's ``step`` reports for one time step.
+
+    mean, std: (d,) the filtered mean and spread of ``x_k``.
+    ensemble: (N, d) the posterior ensemble (kept only with ``return_ensembles``), or None.
+    info: dict of per-step scalars (the particle filter's ``ess``; CSF's bandwidth and shock
+      weight), stacked over steps into ``FilterResult.info``.
+    """
+
+    mean: jax.Array
+    std: jax.Array
+    ensemble: Optional[jax.Array] = None
+    info: dict = {}
+
+
+class Method(NamedTuple):
+    """A filter as the driver runs it.
+
+    name: the user-facing name, for messages (``"particle_filter"``).
+    init: ``(model, config, params, state0, key) -> (state, scan_key)``: the carry at time 0 and the
+      key split into one key per step.
+    step: ``(model_k, config, params, state, y (m,), key, time) -> (state, StepOutput)``;
+      ``model_k`` is the model with this step's time index and input bound (``ssm.at_step``),
+      ``time`` that ``Step`` itself (``time.k`` = 1 .. K).
+    check: ``(model, config) -> None``, raising ValueError if the method cannot filter the model
+      (a non-additive likelihood without a Gaussian stand-in, say), at the boundary.
+    ensemble: whether ``state0`` is an ``(N, d)`` ensemble, checked as one.
+    """
+
+    name: str
+    init: Callable[..., Any]
+    step: Callable[..., Any]
+    check: Callable[[StateSpaceModel, Any], None] = lambda model, config: None
+    ensemble: bool = True
+
+
+def run(method: Method, obs, state0, *, model: StateSpaceModel, key, config=None, params=None,
+        inputs=None, return_ensembles: bool = False, check_finite: bool = True,
+        progress: Optional[Callable[[jax.Array], None]] = None) -> FilterResult:
+    """Run ``method`` over ``obs (K, m)`` from ``state0`` (an ``(N, d)`` ensemble for the ensemble
+    filters); see the module docstring. ``inputs``: the per-step inputs of a time-varying model,
+    a pytree whose leaves have leading axis K."""
+    name = method.name
+    if method.ensemble:
+        _checks.check_filter_inputs(obs, state0, model, name=name)
+    else:
+        _checks.check_obs(obs, model, name=name)
+    _checks.check_key(key, name=name)
+    _checks.check_inputs(inputs, jnp.shape(obs)[0], model, name=name)
+    method.check(model, config)
+    obs, state0 = _checks.promote_tree(obs, state0)
+    result = mark_nonfinite(
+        _scan(method, model, config, bool(return_ensembles), progress, params, obs, state0, key,
+              inputs), obs)
+    if check_finite:
+        _checks.check_result_finite(name, result)
+    return result
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4))
+def _scan(method: Method, model: StateSpaceModel, config, return_ensembles: bool, progress,
+          params, obs, state0, key, inputs) -> FilterResult:
+    K = obs.shape[0]
+    state, scan_key = method.init(model, config, params, state0, key)
+
+    def body(state, xs):
+        index, y, step_k, key_k = xs
+        if progress is not None:
+            jax.debug.callback(progress, index)
+        state, out = method.step(at_step(model, step_k), config, params, state, y, key_k, step_k)
+        return state, (out.mean, out.std, out.ensemble if return_ensembles else None, out.info)
+
+    xs = (jnp.arange(K), obs, steps(K, inputs), jax.random.split(scan_key, K))
+    _, (mean, std, ensembles, info) = jax.lax.scan(body, state, xs)
+    info = dict(info)
+    ess = info.pop("ess", None)
+    return FilterResult(mean=mean, std=std, ensembles=ensembles, ess=ess, info=info or None)

@@ -1,0 +1,211 @@
+"""CSF's mixture prior: which prior each posterior member is drawn under, decided by the evidence.
+
+The propagated ensemble admits three readings of the prior, and a filter step mixes them:
+
+* **particle** components ``N(f(x_i), Q)``, one per member: the exact prior given the previous
+  posterior ensemble (the optimal-proposal particle filter). Right in low dimension and for
+  multimodal or strongly non-Gaussian priors, degenerate when few components fit the observation.
+* the **ensemble** component: the prior score of the ``PriorScore`` (the ensemble's Gaussian, or
+  the learned conditional score), sampled by CSF's reverse-diffusion sampler. Right when the prior
+  is close to its Gaussian or the particles are too few for the observation.
+* **shock** components ``N(m, C + tau^2 I)``: the ensemble inflated by a few scales tau, with a small
+  prior probability (``shock_hazard``): after an unmodelled jump of the truth, they are the only
+  part of the prior that explains the observation, and the evidence moves the posterior there.
+
+Each component's evidence ``int N(x; mu, B) p(y | x) dx`` is estimated by a few damped Gauss-Newton
+steps to the mode of ``N(x; mu, B) p(y | x)`` and importance sampling from its Laplace Gaussian
+(``guidance.importance_weights``); members are resampled over all components by prior weight x
+evidence. A member that lands on a particle component keeps that component's importance draw; the
+others are drawn by the reverse-diffusion sampler from their component's posterior.
+
+The particle and ensemble readings compete through their prior odds, updated by their evidence
+over the recent steps (log Bayes factor with forgetting ``memory``): on a model where the Gaussian
+predicts the observations better (high dimension, few particles for the observation) the ensemble
+component takes over; where it does not, the particle components keep the prior odds' preference.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax.scipy.special import logsumexp
+
+from csf_jax import _linalg
+from csf_jax.guidance import importance_weights, kalman_tweedie
+from csf_jax.ssm import StateSpaceModel, curvature, log_likelihood, process_cov, tail_df
+
+
+@dataclasses.dataclass(frozen=True)
+class MixtureConfig:
+    """The mixture prior's settings (``CSFConfig.mixture``); defaults chosen on models outside the
+    tables (docs/zoo.md).
+
+    particles: include the particle components ``N(f(x_i), Q)`` (they need the process noise's
+      covariance Q: i.i.d. noise, or ``ProcessNoise.covariance``).
+    particle_logodds: prior log-odds of the particle reading against the ensemble one, before the
+      evidence of the recent steps.
+    memory: forgetting factor of the accumulated log Bayes factor (0: this step's prior odds only;
+      0.9: about the last ten steps).
+    shock_hazard: the prior probability that the step holds an unmodelled jump (the shock
+      components' total weight); 0 switches them off.
+    shock_scales: the shock components' inflations ``tau^2``, as multiples of the ensemble's mean
+      variance: a geometric grid from twice to 64 times its spread, so that one component is
+      within a factor 2 of any jump in that range (the evidence then pays at most ``2^d`` for the
+      grid's coarseness, against the ``exp(-jump^2 / spread^2)`` the ensemble pays).
+    iterations, proposals: Gauss-Newton steps and importance draws per particle component.
+    ensemble_iterations, ensemble_proposals: the same for the ensemble and shock components (one
+      each, so they can afford more: their evidence decides between readings).
+    """
+
+    particles: bool = True
+    particle_logodds: float = 2.0
+    memory: float = 0.9
+    shock_hazard: float = 1e-3
+    shock_scales: tuple = (4.0, 16.0, 64.0, 256.0, 1024.0, 4096.0)
+    iterations: int = 3
+    proposals: int = 8
+    ensemble_iterations: int = 12
+    ensemble_proposals: int = 64
+
+    def __post_init__(self):
+        for name in ("iterations", "proposals", "ensemble_iterations", "ensemble_proposals"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"MixtureConfig.{name} must be a positive int, got {value!r}")
+        if not (isinstance(self.memory, (int, float)) and 0.0 <= self.memory < 1.0):
+            raise ValueError(f"MixtureConfig.memory must lie in [0, 1), got {self.memory!r}")
+        if not (isinstance(self.shock_hazard, (int, float)) and 0.0 <= self.shock_hazard < 1.0):
+            raise ValueError(f"MixtureConfig.shock_hazard must lie in [0, 1), got "
+                             f"{self.shock_hazard!r}")
+        if not (isinstance(self.particle_logodds, (int, float))
+                and math.isfinite(self.particle_logodds)):
+            raise ValueError(f"MixtureConfig.particle_logodds must be a finite number, got "
+                             f"{self.particle_logodds!r}")
+        scales = self.shock_scales
+        if not isinstance(scales, tuple) or not scales or not all(
+                isinstance(v, (int, float)) and v > 0 and math.isfinite(v) for v in scales):
+            raise ValueError(f"MixtureConfig.shock_scales must be a non-empty tuple of positive "
+                             f"numbers, got {scales!r}")
+
+
+class Selection(NamedTuple):
+    """The evidence stage's outcome for one filter step.
+
+    kind: (N,) int32 per posterior member: 0 a particle component, 1 the ensemble component,
+      ``1 + g`` the shock component of scale g.
+    draws: (N, d) the chosen particle components' posterior draws (used where ``kind == 0``).
+    inflation: (1 + G,) ``tau^2`` of kinds 1.. (the ensemble's base inflation, then the shocks').
+    log_bf: this step's log Bayes factor of the particle reading against the ensemble one.
+    particle_weight, shock_weight: the posterior weights of the particle and shock components.
+    """
+
+    kind: jax.Array
+    draws: jax.Array
+    inflation: jax.Array
+    log_bf: jax.Array
+    particle_weight: jax.Array
+    shock_weight: jax.Array
+
+
+def uses_particles(config: MixtureConfig, model: StateSpaceModel) -> bool:
+    """Whether the particle components are on: asked for, and Q is known."""
+    noise = model.process_noise
+    return config.particles and (noise is None or noise.covariance is not None)
+
+
+def _component_evidence(model, y, key, means, precision, iterations: int, proposals: int, guide):
+    """Log evidence ``(C,)`` and one posterior draw ``(C, d)`` of each Gaussian component
+    ``N(means_c, precision^-1)`` (``precision`` (d, d) shared) times ``p(y | x)^guide``. The
+    importance proposals take the noise's heavy tails where it has them (``ssm.tail_df``)."""
+    loglik = lambda x: log_likelihood(model, y, x)
+    weight = lambda x: curvature(model, y, x)
+    u, chol = kalman_tweedie(means, precision, loglik, model.observe, weight, means, guide,
+                             iterations, damped=True)
+    k_draw, k_pick = jax.random.split(key)
+    cand, log_w = importance_weights(k_draw, means, precision, u, chol, loglik, guide, proposals,
+                                     tail_df(model), normalized=True)
+    log_w = jnp.where(jnp.isnan(log_w), -jnp.inf, log_w)
+    pick = jax.random.categorical(k_pick, log_w, axis=0)
+    draws = jnp.take_along_axis(cand, pick[None, :, None], axis=0)[0]
+    return logsumexp(log_w, 0) - jnp.log(proposals), draws
+
+
+def precision(cov):
+    """``cov^{-1}`` of a symmetric positive-definite ``(..., d, d)``, symmetrised."""
+    eye = jnp.broadcast_to(jnp.eye(cov.shape[-1], dtype=cov.dtype), cov.shape)
+    p = _linalg.cho_solve(_linalg.cholesky(cov)[..., None, :, :], eye)
+    return 0.5 * (p + jnp.swapaxes(p, -1, -2))
+
+
+def select(model: StateSpaceModel, config: MixtureConfig, key, y, centers, prior_ens, cov,
+           base_inflation, odds, guide) -> Selection:
+    """The evidence stage of one filter step (module docstring).
+
+    centers: (N, d) ``f(x_i)``.  prior_ens: (N, d) ``f(x_i) + v_i``.  cov: (d, d) the ensemble
+    component's covariance (the prior ensemble's, floored).  base_inflation: its ``tau^2``.
+    odds: the particle reading's prior log-odds for this step.  guide: 1 to assimilate ``y``, 0 not.
+    """
+    n, d = prior_ens.shape
+    dtype = prior_ens.dtype
+    eye = jnp.eye(d, dtype=dtype)
+    k_part, k_ens, k_res = jax.random.split(key, 3)
+    mean = prior_ens.mean(0)
+    scales = jnp.asarray(config.shock_scales, dtype)
+    shocks = config.shock_hazard > 0
+    shock_tau2 = jnp.trace(cov) / d * scales
+    inflation = jnp.concatenate([jnp.reshape(jnp.asarray(base_inflation, dtype), (1,)),
+                                 shock_tau2 if shocks else jnp.zeros((0,), dtype)])
+    precisions = precision(cov[None] + inflation[:, None, None] * eye)      # (1 + G, d, d)
+    ens_keys = jax.random.split(k_ens, precisions.shape[0])
+    log_z_ens = jax.vmap(lambda p, k: _component_evidence(
+        model, y, k, mean[None], p, config.ensemble_iterations, config.ensemble_proposals,
+        guide)[0][0])(precisions, ens_keys)                                   # (1 + G,)
+    log_hazard = jnp.log(jnp.asarray(config.shock_hazard if shocks else 0.0, dtype))
+    log_calm = jnp.log1p(-jnp.asarray(config.shock_hazard if shocks else 0.0, dtype))
+    if uses_particles(config, model):
+        q_prec = precision(process_cov(model, dtype) + 1e-12 * eye)
+        log_z_part, draws = _component_evidence(
+            model, y, k_part, centers, q_prec, config.iterations, config.proposals, guide)
+        log_z_part = jnp.where(jnp.isfinite(log_z_part), log_z_part, -jnp.inf)
+        log_bf = logsumexp(log_z_part) - jnp.log(n) - log_z_ens[0]
+        prior_part = log_calm + jax.nn.log_sigmoid(odds) - jnp.log(n)
+        prior_ens_comp = log_calm + jax.nn.log_sigmoid(-odds)
+    else:
+        log_z_part = jnp.full((0,), -jnp.inf, dtype)
+        draws = prior_ens
+        log_bf = jnp.asarray(-jnp.inf, dtype)
+        prior_part = jnp.asarray(-jnp.inf, dtype)
+        prior_ens_comp = log_calm
+    log_w = jnp.concatenate([prior_part + log_z_part, prior_ens_comp + log_z_ens[:1],
+                             log_hazard - jnp.log(scales.shape[0]) + log_z_ens[1:]])
+    log_w = jnp.where(jnp.isnan(log_w), -jnp.inf, log_w)
+    idx = _systematic(k_res, log_w, n)
+    n_part = log_z_part.shape[0]
+    kind = jnp.where(idx < n_part, 0, idx - n_part + 1).astype(jnp.int32)
+    total = logsumexp(log_w)
+    weights = jnp.exp(log_w - total)
+    particle_weight = jnp.sum(weights[:n_part])
+    shock_weight = jnp.sum(weights[n_part + 1:])
+    return Selection(kind, draws[jnp.clip(idx, 0, max(n_part, 1) - 1)], inflation,
+                     jnp.where(jnp.isfinite(log_bf), log_bf, 0.0), particle_weight,
+                     shock_weight)
+
+
+def _systematic(key, log_weights, n: int):
+    """``n`` systematic draws of indices from unnormalised ``log_weights (C,)``."""
+    w = jnp.exp(log_weights - logsumexp(log_weights))
+    cdf = jnp.cumsum(w)
+    cdf = cdf / cdf[-1]
+    u = (jnp.arange(n, dtype=cdf.dtype) + jax.random.uniform(key, (), cdf.dtype)) / n
+    return jnp.clip(jnp.searchsorted(cdf, u, side="left"), 0, log_weights.shape[0] - 1)
+
+
+def next_odds(config: MixtureConfig, memory, log_bf):
+    """The accumulated log Bayes factor after this step, and the next step's prior log-odds of
+    the particle reading: ``S <- memory S + log_bf``, odds = ``particle_logodds + S``."""
+    acc = config.memory * memory + log_bf
+    return acc, config.particle_logodds + acc
