@@ -22,6 +22,7 @@ from csf_jax.filters import (CSFConfig, FilterResult, LETKFConfig, LocalCSFConfi
                              ReferenceConfig, SFConfig, ensemble_kalman_filter, kalman_filter,
                              letkf, local_filter, particle_filter, reference_filter,
                              ring_localization, score_filter)
+from csf_jax.filters.csf import ROBUST
 from csf_jax.filters.csf import csf_filter as filter  # noqa: A001  (the user-facing name)
 from csf_jax.guidance import GuidanceConfig
 from csf_jax.mixture import MixtureConfig
@@ -36,10 +37,10 @@ from csf_jax.ssm import (Likelihood, ObservationNoise, ProcessNoise, StateSpaceM
                          gaussian_process_noise, log_likelihood, poisson_likelihood, propagate,
                          shock_steps, simulate, volatility_likelihood)
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 __all__ = ["CSFConfig", "FilterResult", "GuidanceConfig", "Likelihood", "MixtureConfig",
-           "NetworkConfig", "ObservationNoise", "Step", "poisson_likelihood",
+           "NetworkConfig", "ObservationNoise", "ROBUST", "Step", "poisson_likelihood",
            "volatility_likelihood",
            "Pretrained", "PriorScore", "ProcessNoise", "TrainedPrior", "DatasetConfig", "TrainConfig",
            "load_prior", "train_prior", "LETKFConfig", "LocalCSFConfig", "Localization", "letkf",

@@ -149,9 +149,14 @@ def kalman_tweedie(x0_hat, prior_precision, loglik_fn, observe_fn, weight_fn, u_
     last linearisation point.
     """
     def system(x0h, u, precision):
+        # where the likelihood over- or underflows (an exp of a far-off state) it gives no
+        # direction: the prior term alone moves u there
         jac = jax.jacfwd(observe_fn)(u)
-        chol = _linalg.cholesky(precision + guide * _weighted_gram(jac, weight_fn(u)))
-        return chol, precision @ (x0h - u) + guide * jax.grad(loglik_fn)(u)
+        weight = weight_fn(u)
+        grad = jax.grad(loglik_fn)(u)
+        chol = _linalg.cholesky(precision + guide * _weighted_gram(
+            jac, jnp.where(jnp.isfinite(weight), weight, 0.0)))
+        return chol, precision @ (x0h - u) + guide * jnp.where(jnp.isfinite(grad), grad, 0.0)
 
     def objective(x0h, u, precision):
         diff = u - x0h

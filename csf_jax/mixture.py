@@ -15,8 +15,11 @@ The propagated ensemble admits three readings of the prior, and a filter step mi
 Each component's evidence ``int N(x; mu, B) p(y | x) dx`` is estimated by a few damped Gauss-Newton
 steps to the mode of ``N(x; mu, B) p(y | x)`` and importance sampling from its Laplace Gaussian
 (``guidance.importance_weights``); members are resampled over all components by prior weight x
-evidence. A member that lands on a particle component keeps that component's importance draw; the
-others are drawn by the reverse-diffusion sampler from their component's posterior.
+evidence. A member that lands on a particle or shock component keeps an importance draw from that
+component's posterior; the ensemble component's members are drawn by the reverse-diffusion sampler
+(the only part of the step that uses the prior score, learned or Gaussian). The shock components'
+wide Gaussians are not left to the sampler: under a weakly informative likelihood (stochastic
+volatility's) its early, far-flung Tweedie estimates overflow the likelihood.
 
 The particle and ensemble readings compete through their prior odds, updated by their evidence
 over the recent steps (log Bayes factor with forgetting ``memory``): on a model where the Gaussian
@@ -97,7 +100,9 @@ class Selection(NamedTuple):
 
     kind: (N,) int32 per posterior member: 0 a particle component, 1 the ensemble component,
       ``1 + g`` the shock component of scale g.
-    draws: (N, d) the chosen particle components' posterior draws (used where ``kind == 0``).
+    draws: (N, d) each member's posterior draw from its particle or shock component (by
+      importance resampling); the ensemble component's members (``kind == 1``) are drawn by the
+      reverse-diffusion sampler instead.
     inflation: (1 + G,) ``tau^2`` of kinds 1.. (the ensemble's base inflation, then the shocks').
     log_bf: this step's log Bayes factor of the particle reading against the ensemble one.
     particle_weight, shock_weight: the posterior weights of the particle and shock components.
@@ -119,8 +124,9 @@ def uses_particles(config: MixtureConfig, model: StateSpaceModel) -> bool:
 
 def _component_evidence(model, y, key, means, precision, iterations: int, proposals: int, guide):
     """Log evidence ``(C,)`` and one posterior draw ``(C, d)`` of each Gaussian component
-    ``N(means_c, precision^-1)`` (``precision`` (d, d) shared) times ``p(y | x)^guide``. The
-    importance proposals take the noise's heavy tails where it has them (``ssm.tail_df``)."""
+    ``N(means_c, precision^-1)`` (``precision`` (d, d) shared) times ``p(y | x)^guide``, and the
+    Laplace proposal ``N(u (C, d), (chol chol^T)^{-1})`` they came from. The importance proposals
+    take the noise's heavy tails where it has them (``ssm.tail_df``)."""
     loglik = lambda x: log_likelihood(model, y, x)
     weight = lambda x: curvature(model, y, x)
     u, chol = kalman_tweedie(means, precision, loglik, model.observe, weight, means, guide,
@@ -131,7 +137,7 @@ def _component_evidence(model, y, key, means, precision, iterations: int, propos
     log_w = jnp.where(jnp.isnan(log_w), -jnp.inf, log_w)
     pick = jax.random.categorical(k_pick, log_w, axis=0)
     draws = jnp.take_along_axis(cand, pick[None, :, None], axis=0)[0]
-    return logsumexp(log_w, 0) - jnp.log(proposals), draws
+    return logsumexp(log_w, 0) - jnp.log(proposals), draws, u, chol
 
 
 def precision(cov):
@@ -152,7 +158,7 @@ def select(model: StateSpaceModel, config: MixtureConfig, key, y, centers, prior
     n, d = prior_ens.shape
     dtype = prior_ens.dtype
     eye = jnp.eye(d, dtype=dtype)
-    k_part, k_ens, k_res = jax.random.split(key, 3)
+    k_part, k_ens, k_res, k_shock = jax.random.split(key, 4)
     mean = prior_ens.mean(0)
     scales = jnp.asarray(config.shock_scales, dtype)
     shocks = config.shock_hazard > 0
@@ -161,14 +167,15 @@ def select(model: StateSpaceModel, config: MixtureConfig, key, y, centers, prior
                                  shock_tau2 if shocks else jnp.zeros((0,), dtype)])
     precisions = precision(cov[None] + inflation[:, None, None] * eye)      # (1 + G, d, d)
     ens_keys = jax.random.split(k_ens, precisions.shape[0])
-    log_z_ens = jax.vmap(lambda p, k: _component_evidence(
+    log_z_ens, _, u_ens, chol_ens = jax.vmap(lambda p, k: _component_evidence(
         model, y, k, mean[None], p, config.ensemble_iterations, config.ensemble_proposals,
-        guide)[0][0])(precisions, ens_keys)                                   # (1 + G,)
+        guide))(precisions, ens_keys)                                         # (1 + G, 1, ...)
+    log_z_ens = log_z_ens[:, 0]
     log_hazard = jnp.log(jnp.asarray(config.shock_hazard if shocks else 0.0, dtype))
     log_calm = jnp.log1p(-jnp.asarray(config.shock_hazard if shocks else 0.0, dtype))
     if uses_particles(config, model):
         q_prec = precision(process_cov(model, dtype) + 1e-12 * eye)
-        log_z_part, draws = _component_evidence(
+        log_z_part, draws, _, _ = _component_evidence(
             model, y, k_part, centers, q_prec, config.iterations, config.proposals, guide)
         log_z_part = jnp.where(jnp.isfinite(log_z_part), log_z_part, -jnp.inf)
         log_bf = logsumexp(log_z_part) - jnp.log(n) - log_z_ens[0]
@@ -190,9 +197,20 @@ def select(model: StateSpaceModel, config: MixtureConfig, key, y, centers, prior
     weights = jnp.exp(log_w - total)
     particle_weight = jnp.sum(weights[:n_part])
     shock_weight = jnp.sum(weights[n_part + 1:])
-    return Selection(kind, draws[jnp.clip(idx, 0, max(n_part, 1) - 1)], inflation,
-                     jnp.where(jnp.isfinite(log_bf), log_bf, 0.0), particle_weight,
-                     shock_weight)
+    draws = draws[jnp.clip(idx, 0, max(n_part, 1) - 1)]
+    if shocks:
+        # a shock member: importance resampling from its component's Laplace proposal (``proposals``
+        # candidates of its own); the reverse-diffusion sampler is left to the ensemble component
+        g = jnp.clip(kind - 1, 0, inflation.shape[0] - 1)
+        cand, log_wc = importance_weights(
+            k_shock, jnp.broadcast_to(mean, (n, d)), precisions[g], u_ens[g, 0], chol_ens[g, 0],
+            lambda x: log_likelihood(model, y, x), guide, config.proposals, tail_df(model))
+        log_wc = jnp.where(jnp.isnan(log_wc), -jnp.inf, log_wc)
+        pick = jax.random.categorical(jax.random.fold_in(k_shock, 1), log_wc, axis=0)
+        shock_draws = jnp.take_along_axis(cand, pick[None, :, None], axis=0)[0]
+        draws = jnp.where((kind > 1)[:, None], shock_draws, draws)
+    return Selection(kind, draws, inflation, jnp.where(jnp.isfinite(log_bf), log_bf, 0.0),
+                     particle_weight, shock_weight)
 
 
 def _systematic(key, log_weights, n: int):

@@ -91,7 +91,7 @@ def prior_vs_model(out: str, name: str, model, pretrained, config, ensemble0, ke
     params = None if pretrained is None else pretrained.params
     network = None if pretrained is None else pretrained.network
     _, obs = csf_jax.simulate(model, key)
-    prior = _prior_for(params, None, network, config.sigma_max, config.encode_particles)
+    prior = _prior_for(params, None, network, config)
     result = csf_jax.filter(params, obs[:k], ensemble0, problem=model, key=k_filt, config=config,
                             network=network, return_ensembles=True)
     post = result.ensembles[-1]

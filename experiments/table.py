@@ -100,8 +100,8 @@ def render(results: dict, command: str) -> str:
         lines.append(f"| {run_mod.LABELS[m]} | " + " | ".join(cells) + " |")
     differ = _config_differences(results)
     if differ:
-        lines += ["", "CSF (and CSF-G) settings other than `CSFConfig()`'s, per column (cached "
-                  "runs made with another config): " + "; ".join(differ) + "."]
+        lines += ["", "CSF (and CSF-G) settings other than `CSFConfig()`'s, per column "
+                  "(`experiments.run.CSF_OVERRIDES`): " + "; ".join(differ) + "."]
     if any("rmse_ratio" in r for r in results.values()):
         lines += ["", "RMSE over the reference's RMSE on the same runs (1 is the best achievable):",
                   "", "| method | " + " | ".join(HEADERS) + " |",

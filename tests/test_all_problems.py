@@ -61,7 +61,7 @@ def test_exact_prior_csf_runs(name):
     truth, obs = csf_jax.simulate(model, jax.random.key(0))
     ens = model.initial_ensemble(jax.random.key(1), 32)
     r = csf_jax.filter(None, obs, ens, problem=model, key=jax.random.key(2),
-                       config=CSFConfig(reverse_steps=50), prior=csf_jax.exact_mixture_prior())
+                       config=CSFConfig(reverse_steps=50))
     assert r.mean.shape == (4, model.dim)
     assert bool(jnp.isfinite(r.mean).all())
 

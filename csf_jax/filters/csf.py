@@ -5,8 +5,8 @@ Each filter step, inside one jitted ``lax.scan`` over the K observations (``csf_
     propagate (vmapped drift + process noise) -> prior ensemble -> condition the prior score once
       -> the mixture prior's evidence stage (``csf_jax.mixture``: particle, ensemble and shock
          components; each member's component drawn by prior weight x evidence)
-      -> lax.scan over L reverse steps for the members of the ensemble and shock components
-      -> posterior ensemble (the next carry); mean and std out.
+      -> lax.scan over L reverse steps for the ensemble component's members (particle and shock
+         members keep their importance draws) -> posterior ensemble (the next carry); mean, std.
 
 Two samplers, chosen by ``CSFConfig.guidance.mode``:
 
@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from csf_jax import _checks, _linalg, mixture, networks, trained
+from csf_jax import _checks, mixture, networks, trained
 from csf_jax.filters.driver import Method, StepOutput, run
 from csf_jax.filters.result import FilterResult
 from csf_jax.guidance import (GuidanceConfig, dps_gradient, guidance_displacement, kalman_tweedie,
@@ -42,7 +42,7 @@ from csf_jax.guidance import (GuidanceConfig, dps_gradient, guidance_displacemen
 from csf_jax.inflation import STATISTICS, adaptive_inflation
 from csf_jax.networks import NetworkConfig
 from csf_jax.mixture import MixtureConfig
-from csf_jax.prior import (GaussianContext, PriorScore, ensemble_moments, gaussian_precision,
+from csf_jax.prior import (PriorScore, ensemble_moments, exact_mixture_prior, gaussian_precision,
                            gaussian_prior, learned_prior)
 from csf_jax.sde import (bridge, diffusion_sq, inflated_time, marginal_std, marginal_std_host,
                          noise_levels, reverse_grid, time_of_std)
@@ -77,8 +77,9 @@ class CSFConfig:
     adaptive_inflation: choose the inflation per filter step from the innovation
       (``csf_jax.inflation.adaptive_inflation``): ``tau^2 = prior_inflation^2 + s``, with ``s > 0`` only
       when the observation is improbable under the prior ensemble (a shock), 0 otherwise. Default
-      False: the mixture prior's shock components decide by the evidence instead (a threshold on
-      the innovation reads a nonlinear sensor's surprises as shocks; docs/zoo.md).
+      True (the tables'). With ``mixture``, set it False (``ROBUST``): the shock components decide
+      by the evidence instead; a threshold on the innovation reads a nonlinear sensor's surprises
+      as shocks (docs/zoo.md).
     inflation_threshold: the adaptive inflation's trigger, in standard deviations of the chi-square
       innovation statistic above its mean m.
     inflation_max: cap on the adaptive part of tau.
@@ -92,8 +93,12 @@ class CSFConfig:
       all N on the double well and cubic10_indep, +0.7% on Cauchy, and 0.6x the time of a double-well
       step (docs/ablation.md).
     mixture: the mixture prior (``csf_jax.mixture.MixtureConfig``: particle, ensemble and shock
-      components weighed by their evidence), or None for the ensemble component alone (the
-      paper's sampler with this config's inflation). Used by the ancestral sampler ("kalman").
+      components weighed by their evidence), or None (default) for the ensemble component alone
+      (the paper's sampler with this config's inflation). Used by the ancestral sampler
+      ("kalman"). ``ROBUST`` turns it on: within 1.06x of the better of PF and EnKF on the zoo's
+      eight models, where the default loses runs (docs/zoo.md), but 1.5x the reference on the
+      triple well (the default: 1.13x). With ``params=None`` its ensemble component is the
+      ensemble's Gaussian (the particle components already are the exact mixture).
     """
 
     reverse_steps: int = 20
@@ -103,12 +108,12 @@ class CSFConfig:
     assimilate_first: bool = True
     denoise_last: bool = True
     prior_inflation: float = 0.0
-    adaptive_inflation: bool = False
+    adaptive_inflation: bool = True
     inflation_threshold: float = 2.0
     inflation_max: float = 10.0
     inflation_statistic: str = "median"
     encode_particles: Optional[int] = 256
-    mixture: Optional[MixtureConfig] = MixtureConfig()
+    mixture: Optional[MixtureConfig] = None
 
     def __post_init__(self):
         if self.reverse_steps < 2:
@@ -133,6 +138,11 @@ class CSFConfig:
                             f"{type(self.mixture).__name__}")
 
 
+ROBUST = CSFConfig(adaptive_inflation=False, mixture=MixtureConfig())
+"""CSF for a model it was not tuned on: the mixture prior (``csf_jax.mixture``) with its evidence
+-weighed shock components in place of the innovation-triggered inflation (docs/zoo.md)."""
+
+
 def uses_kalman(config: CSFConfig) -> bool:
     """Whether ``config`` selects the ancestral sampler with Kalman guidance."""
     return config.guidance.mode == "kalman"
@@ -145,18 +155,10 @@ class SamplerStart(NamedTuple):
       (Euler-Maruyama).
     tau: prior inflation of this filter step: ``CSFConfig.prior_inflation`` (a float), or the
       adaptive one of ``csf_jax.inflation`` (a scalar array).
-    kind: optional (N,) int32, the mixture prior's component of each member
-      (``csf_jax.mixture.Selection.kind``): 0 or 1 sample the prior score (0: a particle member,
-      replaced afterwards), ``1 + g`` the shock Gaussian ``N(m, C + shock_inflation[g] I)``.
-    moments: the prior ensemble's ``GaussianContext`` (mean, floored covariance), with ``kind``.
-    shock_inflation: (G,) the shock components' ``tau^2``, with ``kind``.
     """
 
     precision: Optional[jax.Array]
     tau: Union[float, jax.Array]
-    kind: Optional[jax.Array] = None
-    moments: Optional[GaussianContext] = None
-    shock_inflation: Optional[jax.Array] = None
 
 
 def step_inflation(config: CSFConfig, prior_ens, y=None, model: Optional[StateSpaceModel] = None,
@@ -196,8 +198,7 @@ def ancestral_sample(params, prior: PriorScore, context, model: StateSpaceModel,
 
     start.precision: (d, d) the ensemble Gaussian's ``(C + tau^2 I)^{-1}``; at level sigma the
     covariance of ``x_0 | x_t`` is ``P = (precision + I / sigma^2)^{-1}`` (exact for a Gaussian prior).
-    start.tau: the prior inflation. start.kind: if given, each member's mixture component; members
-    of a shock component use that Gaussian's score and precision instead of the prior's.
+    start.tau: the prior inflation.
     """
     precision = start.precision
     sigma_max = config.sigma_max
@@ -209,29 +210,13 @@ def ancestral_sample(params, prior: PriorScore, context, model: StateSpaceModel,
     def weight_fn(u):
         return curvature(model, y, u)
 
-    shocks = start.kind is not None and start.shock_inflation.shape[0] > 0
-    if start.kind is not None:
-        shock = start.kind[:, None] > 1
-        shock_index = jnp.maximum(start.kind - 2, 0)
-        shock_cov = start.moments.cov[None] + start.shock_inflation[:, None, None] * eye
-        table = jnp.concatenate([precision[None], mixture.precision(shock_cov)]) if shocks \
-            else precision[None]
-        member_precision = table[jnp.clip(start.kind - 1, 0, table.shape[0] - 1)]  # (N, d, d)
-
     def step(carry, inputs):
         x, u = carry
         sigma, sigma_next, l_idx = inputs
         t = inflated_time(time_of_std(sigma, sigma_max), start.tau, sigma_max)
         x0_hat = x + sigma ** 2 * prior.score(params, context, x, t)
-        if start.kind is None:
-            prior_precision = precision + eye / sigma ** 2
-        else:
-            if shocks:
-                chol = _linalg.cholesky(shock_cov + sigma ** 2 * eye)        # (G, d, d)
-                solved = _linalg.cho_solve(chol[shock_index], x - start.moments.mean)
-                x0_hat = jnp.where(shock, x - sigma ** 2 * solved, x0_hat)
-            prior_precision = member_precision + eye / sigma ** 2
         u = jnp.where(l_idx == 0, x0_hat, u)
+        prior_precision = precision + eye / sigma ** 2
         u, chol = kalman_tweedie(x0_hat, prior_precision, loglik_fn, model.observe, weight_fn, u, guide,
                                  config.guidance.iterations)
         k_bridge, k_post = jax.random.split(jax.random.fold_in(key, l_idx))
@@ -315,25 +300,20 @@ def particle_sampler(model: StateSpaceModel, prior: PriorScore, config: CSFConfi
     mesh = jax.sharding.Mesh(np.array(devices[:shards]), ("particles",))
     P = jax.sharding.PartitionSpec
 
-    def sharded(params, context, y, x_init, start, key, guide):
-        start_spec = SamplerStart(P(), P(), None if start.kind is None else P("particles"),
-                                  None if start.moments is None else P(),
-                                  None if start.shock_inflation is None else P())
-        return jax.shard_map(sample, mesh=mesh,
-                             in_specs=(P(), P(), P(), P("particles"), start_spec, P(), P()),
-                             out_specs=P("particles"), check_vma=False)(
-            params, context, y, x_init, start, key, guide)
-
-    return sharded
+    return jax.shard_map(sample, mesh=mesh, in_specs=(P(), P(), P(), P("particles"), P(), P(), P()),
+                         out_specs=P("particles"), check_vma=False)
 
 
 def _prior_for(params, prior: Optional[PriorScore], network: Optional[NetworkConfig],
-               sigma_max: float, encode_particles: Optional[int] = None) -> PriorScore:
+               config: CSFConfig) -> PriorScore:
     if prior is not None:
         return prior
     if params is None:
-        return gaussian_prior(sigma_max)
-    return learned_prior(network if network is not None else NetworkConfig(), encode_particles)
+        # with the mixture, the particle components are the exact mixture already
+        return (exact_mixture_prior if config.mixture is None else gaussian_prior)(
+            config.sigma_max)
+    return learned_prior(network if network is not None else NetworkConfig(),
+                         config.encode_particles)
 
 
 class CSFStatic(NamedTuple):
@@ -371,18 +351,10 @@ def _step(model: StateSpaceModel, static: CSFStatic, params, state, y, key, time
         sample = particle_sampler(model, prior, config, static.shards)
     moments = ensemble_moments(prior_ens)
     odds = config.mixture.particle_logodds + memory
-    k_select, k_shock = jax.random.split(jax.random.fold_in(key, 3))
-    sel = mixture.select(model, config.mixture, k_select, y, centers, prior_ens, moments.cov,
-                         jnp.square(start.tau), odds, guide)
-    shock_tau2 = sel.inflation[1:]
-    if shock_tau2.shape[0]:
-        # a shock member starts from its own, wider component's diffused prior
-        spread = jnp.sqrt(shock_tau2[jnp.maximum(sel.kind - 2, 0)])
-        x_init = x_init + jnp.where(sel.kind > 1, spread, 0.0)[:, None] * jax.random.normal(
-            k_shock, x_init.shape, x_init.dtype)
-    start = start._replace(kind=sel.kind, moments=moments, shock_inflation=shock_tau2)
+    sel = mixture.select(model, config.mixture, jax.random.fold_in(key, 3), y, centers, prior_ens,
+                         moments.cov, jnp.square(start.tau), odds, guide)
     post = sample(params, context, y, x_init, start, k_rev, guide)
-    post = jnp.where((sel.kind == 0)[:, None], sel.draws, post)
+    post = jnp.where((sel.kind == 1)[:, None], post, sel.draws)
     memory, _ = mixture.next_odds(config.mixture, memory, sel.log_bf)
     info = {"particle_weight": sel.particle_weight, "shock_weight": sel.shock_weight}
     return (post, memory), StepOutput(post.mean(0), post.std(0), post, info)
@@ -403,18 +375,20 @@ def csf_filter(params, obs, ensemble, *, problem: StateSpaceModel, key,
       params: a trained prior (``TrainedPrior``, from ``csf_jax.train_prior``, ``load_prior`` or
         ``load_pretrained``: the checked route, see ``csf_jax.trained.unpack``), raw network
         parameters ``{"encoder": ..., "score": ...}`` (only their shapes can be checked), or None:
-        no network, the ensemble's own Gaussian as the ensemble component (no training needed).
+        no network (no training needed): the exact Gaussian-mixture prior ``sum_i N(f(x_i), Q)``,
+        or with ``config.mixture`` the ensemble's own Gaussian as the ensemble component.
       obs: (K, m) observations ``y_1 .. y_K``; float, promoted with ``ensemble`` to their common
         float dtype. NaN marks a missing entry (left out of the update); inf is an error.
       ensemble: (N, d) initial ensemble (time 0).
       problem: the ``StateSpaceModel`` (static: hashable).
       key: a ``jax.random.key``; same key, same result.
       prior: the prior-score source of the ensemble component (``gaussian_prior()``,
-        ``exact_mixture_prior()``); by default the Gaussian if params is None, else the learned
+        ``exact_mixture_prior()``); by default as for params=None above, else the learned
         prior. Not together with params.
       network: the network config of raw ``params`` (default ``NetworkConfig()``; a
         ``TrainedPrior`` brings its own, and a different one here is refused).
-      config: online-stage settings (``CSFConfig``; its ``mixture`` the mixture prior's).
+      config: online-stage settings (``CSFConfig``; ``csf_jax.ROBUST`` for a model CSF was not
+        tuned on, docs/zoo.md).
       inputs: a time-varying model's per-step inputs (a pytree, leading axis K), or None.
       return_ensembles: also return the (K, N, d) posterior ensembles.
       check_finite: when called outside jit/vmap, raise FloatingPointError if the filter diverged.
@@ -435,7 +409,7 @@ def csf_filter(params, obs, ensemble, *, problem: StateSpaceModel, key,
                          f"{prior.name!r} given; the {prior.name} prior would ignore the "
                          f"params: pass params=None with prior=, or leave prior= out")
     params, network = trained.unpack(params, problem, network)
-    prior = _prior_for(params, prior, network, config.sigma_max, config.encode_particles)
+    prior = _prior_for(params, prior, network, config)
     n = jnp.shape(ensemble)[-2] if jnp.ndim(ensemble) >= 2 else 0
     if isinstance(shards, bool) or not isinstance(shards, int) or shards < 1 or (n and n % shards):
         raise ValueError(f"csf_jax.filter: shards must be a positive int dividing the number of "
