@@ -43,6 +43,7 @@ def test_component_evidence_matches_the_gaussian_closed_form(x64):
         assert draws.shape == (4, 3)
 
 
+@pytest.mark.slow
 def test_component_evidence_is_consistent_for_a_nonlinear_sensor(x64):
     """Cubic sensor: the importance estimate converges to the quadrature value of
     ``int N(x; mu, b) exp(-(y - x^3)^2 / (2 r^2)) dx`` (1-D), within 0.05 in log at 4096
@@ -102,6 +103,7 @@ def test_memory_accumulates_with_forgetting():
     assert float(acc) == 4.0 and float(odds) == 5.0
 
 
+@pytest.mark.slow
 def test_mixture_csf_tracks_kalman(x64):
     """``csf_jax.ROBUST`` (the mixture prior) on a linear-Gaussian model, N = 300: within a
     fraction of the Kalman std of the Kalman mean."""

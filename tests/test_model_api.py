@@ -70,7 +70,8 @@ def test_simulate_threads_inputs_and_the_time_index():
         assert float(truth[k, 0]) == pytest.approx(x, rel=1e-4, abs=1e-4)
 
 
-@pytest.mark.parametrize("method", ["csf", "csf_robust", "pf", "enkf"])
+@pytest.mark.parametrize("method", ["csf", pytest.param("csf_robust", marks=pytest.mark.slow),
+                                    "pf", "enkf"])
 def test_filters_with_inputs_match_the_kalman_filter(method):
     """On a linear-Gaussian model driven by inputs, every ensemble filter's mean is within a few
     posterior stds' Monte Carlo error of the exact (Kalman) mean, with the inputs applied at the
@@ -139,6 +140,7 @@ def _poisson_1d():
                            0.35, csf_jax.poisson_likelihood(), truth, ensemble)
 
 
+@pytest.mark.slow
 def test_poisson_likelihood_filters_match_a_grid_filter():
     """Counts ``y ~ Poisson(exp(1 + x))``: CSF (defaults and ``ROBUST``, no network) and the PF
     against a quadrature filter, including steps with a missing count; the EnKF, on its Gaussian

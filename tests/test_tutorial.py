@@ -5,9 +5,12 @@ itself asserts CSF's RMSE is within 1.1x of the better of PF and EnKF."""
 import os
 import pathlib
 
+import pytest
+
 from experiments import tutorial
 
 
+@pytest.mark.slow
 def test_the_tutorial_runs_and_csf_is_within_1_1x_of_the_best(tmp_path, monkeypatch):
     # its time is in running code, not compiling it: drop the suite's unoptimised-codegen flag
     # (tests/conftest.py), which would make it 2.5x slower
