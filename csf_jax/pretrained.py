@@ -37,8 +37,8 @@ DATASETS = {
 }
 
 # Network of each shipped model: the ensemble's Gaussian score plus a learned correction on
-# standardised coordinates (NetworkConfig.base, issue 11), so an untrained or useless correction
-# leaves the ensemble's own Gaussian. The whole-score models of earlier sessions needed 12000 steps
+# standardised coordinates (NetworkConfig.base), so an untrained or useless correction
+# leaves the ensemble's own Gaussian. Whole-score models (no Gaussian base) needed 12000 steps
 # on the cubic problems; the Gaussian-base ones start at the Gaussian's loss, and 4000 steps are
 # the recipe for every problem (docs/results.md).
 NETWORK = {name: networks.NetworkConfig(base="gaussian") for name in DATASETS}

@@ -87,7 +87,7 @@ class ObservationNoise(NamedTuple):
         ``gaussian_std^2 I``."""
         if self.covariance is not None:
             return jnp.asarray(self.covariance, dtype)
-        # squared in Python, then cast: the EnKF's R of earlier sessions to the last bit
+        # squared in Python, then cast: the same R, bit for bit, as the tables' cached EnKF runs
         return jnp.asarray(self.gaussian_std ** 2, dtype) * jnp.eye(m, dtype=dtype)
 
     def gaussian_draws(self, key: Array, shape: tuple, dtype=jnp.float32) -> Array:

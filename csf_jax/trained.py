@@ -86,7 +86,7 @@ jax.tree_util.register_pytree_with_keys(
                (p.network, _Static(p.meta), tuple(p.serves))),
     lambda aux, children: TrainedPrior(children[0], aux[0], aux[1].value, aux[2]))
 
-# The name of earlier sessions (the shipped models' type); the same class.
+# An alias kept for code that names the shipped models' type; the same class.
 Pretrained = TrainedPrior
 
 

@@ -71,7 +71,7 @@ class CSFConfig:
       form of the ensemble filters' covariance inflation). 0 is the paper's sampler. A broader prior
       lets the likelihood pull the ensemble to a state the model deems (nearly) impossible, such
       as the mirror well after an unmodelled shock. Default 0, the base of the adaptive inflation:
-      the exact Bayes update between surprises. The whole-score learned priors of earlier sessions
+      the exact Bayes update between surprises. Whole-score learned priors (no Gaussian base)
       needed 0.2; with the Gaussian-base priors 0 is better in five of the seven columns
       (docs/ablation.md).
     adaptive_inflation: choose the inflation per filter step from the innovation
