@@ -80,13 +80,18 @@ def tendency(x, forcing: float):
     return (jnp.roll(x, -1, -1) - jnp.roll(x, 2, -1)) * jnp.roll(x, 1, -1) - x + forcing
 
 
-def rk4_step(x, h: float, forcing: float):
-    """One classical RK4 step of length ``h``."""
-    k1 = tendency(x, forcing)
-    k2 = tendency(x + 0.5 * h * k1, forcing)
-    k3 = tendency(x + 0.5 * h * k2, forcing)
-    k4 = tendency(x + h * k3, forcing)
+def rk4(tendency_fn, x, h: float):
+    """One classical Runge-Kutta step of length ``h`` of ``dx/dt = tendency_fn(x)`` (any model)."""
+    k1 = tendency_fn(x)
+    k2 = tendency_fn(x + 0.5 * h * k1)
+    k3 = tendency_fn(x + 0.5 * h * k2)
+    k4 = tendency_fn(x + h * k3)
     return x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+
+def rk4_step(x, h: float, forcing: float):
+    """One classical RK4 step of length ``h`` of Lorenz-96."""
+    return rk4(lambda y: tendency(y, forcing), x, h)
 
 
 def obs_sites(config: Lorenz96Config) -> np.ndarray:

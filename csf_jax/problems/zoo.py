@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from csf_jax.problems.linear import linear_gaussian, to_model
+from csf_jax.problems.lorenz96 import rk4
 from csf_jax.ssm import (StateSpaceModel, gaussian_noise, gaussian_process_noise, poisson_likelihood,
                          volatility_likelihood)
 
@@ -46,15 +47,6 @@ def _gaussian_start(mean, std):
         return jnp.asarray(mean) + jnp.asarray(std) * jax.random.normal(key, (n,) + mean.shape)
 
     return truth, ensemble
-
-
-def rk4_step(tendency, x, dt: float):
-    """One classical Runge-Kutta step of ``dx/dt = tendency(x)``."""
-    k1 = tendency(x)
-    k2 = tendency(x + 0.5 * dt * k1)
-    k3 = tendency(x + 0.5 * dt * k2)
-    k4 = tendency(x + dt * k3)
-    return x + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -97,10 +89,10 @@ def lorenz63_tendency(x):
 @functools.lru_cache(maxsize=None)
 def lorenz63(c: Lorenz63Config = Lorenz63Config()) -> StateSpaceModel:
     def drift(x):
-        return jax.lax.fori_loop(0, c.substeps, lambda i, x: rk4_step(lorenz63_tendency, x, c.dt), x)
+        return jax.lax.fori_loop(0, c.substeps, lambda i, x: rk4(lorenz63_tendency, x, c.dt), x)
 
     with jax.ensure_compile_time_eval():
-        on = np.asarray(jax.lax.fori_loop(0, 2000, lambda i, x: rk4_step(lorenz63_tendency, x, c.dt),
+        on = np.asarray(jax.lax.fori_loop(0, 2000, lambda i, x: rk4(lorenz63_tendency, x, c.dt),
                                           jnp.ones(3)))
     truth, ensemble = _gaussian_start(on, c.init_std)
     return StateSpaceModel("lorenz63_gaps", 3, 1, c.num_steps, c.dt * c.substeps, drift,
