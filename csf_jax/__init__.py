@@ -18,24 +18,51 @@ Entry points:
 """
 
 from csf_jax import metrics, problems
-from csf_jax.filters import (CSFConfig, FilterResult, LETKFConfig, LocalCSFConfig, Localization,
-                             ReferenceConfig, SFConfig, ensemble_kalman_filter, kalman_filter,
-                             letkf, local_filter, particle_filter, reference_filter,
-                             ring_localization, score_filter)
+from csf_jax.filters import (
+                             CSFConfig,
+                             FilterResult,
+                             LETKFConfig,
+                             LocalCSFConfig,
+                             Localization,
+                             ReferenceConfig,
+                             SFConfig,
+                             ensemble_kalman_filter,
+                             kalman_filter,
+                             letkf,
+                             local_filter,
+                             particle_filter,
+                             reference_filter,
+                             ring_localization,
+                             score_filter,
+)
 from csf_jax.filters.csf import ROBUST
 from csf_jax.filters.csf import csf_filter as filter  # noqa: A001  (the user-facing name)
 from csf_jax.guidance import GuidanceConfig
-from csf_jax.mixture import MixtureConfig
 from csf_jax.metrics import rmse
+from csf_jax.mixture import MixtureConfig
 from csf_jax.networks import NetworkConfig, init_params
-from csf_jax.prior import PriorScore, exact_mixture_prior, gaussian_prior, learned_prior
 from csf_jax.pretrained import load_pretrained
+from csf_jax.prior import PriorScore, exact_mixture_prior, gaussian_prior, learned_prior
+from csf_jax.ssm import (
+                             Likelihood,
+                             ObservationNoise,
+                             ProcessNoise,
+                             StateSpaceModel,
+                             Step,
+                             cauchy_noise,
+                             drop_observations,
+                             gaussian_noise,
+                             gaussian_noise_cov,
+                             gaussian_process_noise,
+                             log_likelihood,
+                             poisson_likelihood,
+                             propagate,
+                             shock_steps,
+                             simulate,
+                             volatility_likelihood,
+)
 from csf_jax.trained import Pretrained, TrainedPrior, load_prior
 from csf_jax.training import DatasetConfig, TrainConfig, train_prior
-from csf_jax.ssm import (Likelihood, ObservationNoise, ProcessNoise, StateSpaceModel, Step,
-                         cauchy_noise, drop_observations, gaussian_noise, gaussian_noise_cov,
-                         gaussian_process_noise, log_likelihood, poisson_likelihood, propagate,
-                         shock_steps, simulate, volatility_likelihood)
 
 __version__ = "0.2.0"
 

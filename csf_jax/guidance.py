@@ -25,7 +25,6 @@ could not produce. ``"normalized"`` is Chung et al.'s per-particle normalisation
 from __future__ import annotations
 
 import dataclasses
-from typing import Optional
 
 import jax
 import jax.numpy as jnp
@@ -65,7 +64,7 @@ class GuidanceConfig:
     clip: float = 1.0
     iterations: int = 1
     proposals: int = 8
-    proposal_df: Optional[int] = None
+    proposal_df: int | None = None
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -199,7 +198,7 @@ def student_t(key, df: int, shape, dtype):
 
 
 def importance_weights(key, mean, precision, u, chol, loglik_fn, guide, proposals: int,
-                       df: Optional[int] = None, normalized: bool = False):
+                       df: int | None = None, normalized: bool = False):
     """K candidates per row from the Laplace Gaussian ``N(u, A^{-1})`` (or its Student-t
     version), and their log importance weights against ``N(c; mean, P) p(y | c)^guide``.
 
@@ -236,7 +235,7 @@ def _log_det(precision):
 
 
 def resample_posterior(key, x0_hat, prior_precision, u, chol, loglik_fn, guide, proposals: int,
-                       df: Optional[int] = None):
+                       df: int | None = None):
     """One draw per particle of ``N(x_0; x0_hat, P) p(y | x_0)`` by importance resampling.
 
     K candidates ``u + chol^{-T} z`` from the Laplace Gaussian ``N(u, A^{-1})``; weights

@@ -17,7 +17,8 @@ every reverse step. Two sources:
 from __future__ import annotations
 
 import functools
-from typing import Any, Callable, NamedTuple, Optional
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -58,7 +59,7 @@ def mixture_score(x, centers, variance):
     return (resp @ centers - x) / variance
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def exact_mixture_prior(sigma_max: float = 25.0) -> PriorScore:
     """The exact VE-diffused score of the propagated ensemble as a Gaussian mixture."""
 
@@ -108,7 +109,7 @@ def gaussian_score(x, ctx: GaussianContext, sigma):
     return -_linalg.cho_solve(chol if sigma.ndim else chol[None], x - ctx.mean)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def gaussian_prior(sigma_max: float = 25.0) -> PriorScore:
     """The ensemble's own Gaussian, VE-diffused: score ``-(C + sigma_t^2 I)^{-1} (x - m)``."""
 
@@ -145,9 +146,9 @@ def residual_score(params, config: networks.NetworkConfig, ctx: ResidualContext,
     return gaussian_score(x, ctx.moments, sigma[..., 0]) + correction
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def learned_prior(config: networks.NetworkConfig = networks.NetworkConfig(),
-                  encode_particles: Optional[int] = None) -> PriorScore:
+                  encode_particles: int | None = None) -> PriorScore:
     """The conditional score net ``s(x, t; c)`` with ``c`` the set encoder's code of the ensemble.
 
     encode_particles: the encoder sees the first n particles of the ensemble (None: all); with
@@ -169,7 +170,7 @@ def learned_prior(config: networks.NetworkConfig = networks.NetworkConfig(),
     return PriorScore("learned", condition, score)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def unconditional_prior(config: networks.NetworkConfig = networks.NetworkConfig()) -> PriorScore:
     """A score net trained on one ensemble alone (no encoder): its code is fixed at zero.
 

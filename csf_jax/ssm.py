@@ -16,7 +16,8 @@ so filter code calls ``f(x)`` and ``h(x)`` either way.
 from __future__ import annotations
 
 import math
-from typing import Callable, NamedTuple, Optional
+from collections.abc import Callable
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -71,11 +72,11 @@ class ObservationNoise(NamedTuple):
     log_prob: Callable[[Array], Array]
     sample: Callable[[Array, tuple], Array]
     gaussian_std: float
-    fisher: Optional[float] = None
-    weight: Optional[Callable[[Array], Array]] = None
-    covariance: Optional[tuple] = None
-    marginal: Optional[Callable[[Array, Array], Array]] = None
-    tail_df: Optional[int] = None
+    fisher: float | None = None
+    weight: Callable[[Array], Array] | None = None
+    covariance: tuple | None = None
+    marginal: Callable[[Array, Array], Array] | None = None
+    tail_df: int | None = None
 
     @property
     def fisher_information(self) -> float:
@@ -105,7 +106,7 @@ class ObservationNoise(NamedTuple):
             return self.marginal(residual, mask)
         return jnp.where(jnp.all(mask), self.log_prob(residual), jnp.nan)
 
-    def curvature(self, residual: Array, mask: Optional[Array] = None) -> Array:
+    def curvature(self, residual: Array, mask: Array | None = None) -> Array:
         """The curvature of the guidance at ``residual = y - h(x)``: per-coordinate weights
         ``(m,)``, or the ``(m, m)`` precision of a noise with ``covariance``; 0 on missing entries
         (``mask (m,)`` bool, default all observed)."""
@@ -146,7 +147,7 @@ def gaussian_noise(std: float) -> ObservationNoise:
     return _iid_noise("gaussian", lambda r: -0.5 * inv_var * r * r, sample, std)
 
 
-def covariance_tuple(cov, name: str, size: Optional[int] = None) -> tuple:
+def covariance_tuple(cov, name: str, size: int | None = None) -> tuple:
     """A symmetric positive-definite matrix as a nested tuple of floats (hashable); clear errors."""
     arr = np.array(cov, dtype=np.float64)
     if arr.ndim != 2 or arr.shape[0] != arr.shape[1] or (size is not None and arr.shape[0] != size):
@@ -223,9 +224,9 @@ class Likelihood(NamedTuple):
     name: str
     log_prob: Callable[[Array, Array], Array]
     sample: Callable[[Array, Array], Array]
-    fisher: Optional[Callable[[Array], Array]] = None
-    mean: Optional[Callable[[Array], Array]] = None
-    variance: Optional[Callable[[Array], Array]] = None
+    fisher: Callable[[Array], Array] | None = None
+    mean: Callable[[Array], Array] | None = None
+    variance: Callable[[Array], Array] | None = None
 
 
 def poisson_likelihood() -> Likelihood:
@@ -267,8 +268,8 @@ class ProcessNoise(NamedTuple):
 
     name: str
     sample: Callable[[Array, tuple], Array]
-    covariance: Optional[tuple] = None
-    log_prob: Optional[Callable[[Array], Array]] = None
+    covariance: tuple | None = None
+    log_prob: Callable[[Array], Array] | None = None
 
 
 def gaussian_process_noise(cov) -> ProcessNoise:
@@ -376,11 +377,11 @@ class StateSpaceModel(NamedTuple):
     initial_ensemble: Callable[[Array, int], Array]
     shock_times: Callable[[Array, int], Array] = no_shock_times
     shock: Callable[[Array, Array], Array] = reflect_shock
-    process_noise: Optional[ProcessNoise] = None
+    process_noise: ProcessNoise | None = None
     time_varying: bool = False
 
 
-def at_step(model: StateSpaceModel, step: Optional[Step]) -> StateSpaceModel:
+def at_step(model: StateSpaceModel, step: Step | None) -> StateSpaceModel:
     """``model`` with ``step`` bound into a time-varying drift and observation map, so that they
     take ``x`` alone; the model itself when it is not time-varying. For use inside a trace: the
     result holds traced values and is not a static argument."""
@@ -403,7 +404,7 @@ def is_additive(model: StateSpaceModel) -> bool:
     return isinstance(model.obs_noise, ObservationNoise)
 
 
-def tail_df(model: StateSpaceModel) -> Optional[int]:
+def tail_df(model: StateSpaceModel) -> int | None:
     """The degrees of freedom of the observation noise's heavy tails, or None (light tails)."""
     return model.obs_noise.tail_df if is_additive(model) else None
 

@@ -22,7 +22,7 @@ import dataclasses
 import functools
 import json
 import os
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -56,12 +56,12 @@ class TrainedPrior(NamedTuple):
         return os.path.abspath(directory)
 
     @property
-    def problem(self) -> Optional[str]:
+    def problem(self) -> str | None:
         """The name of the problem it was trained for (None if the meta record has none)."""
         return self.meta.get("problem")
 
     @property
-    def dim(self) -> Optional[int]:
+    def dim(self) -> int | None:
         """The state dimension it was trained for (None if the meta record has none)."""
         return None if self.meta.get("dim") is None else int(self.meta["dim"])
 
@@ -124,7 +124,7 @@ def _fingerprint(model: StateSpaceModel) -> dict:
                       "observe": observe.tolist()}}
 
 
-def fingerprint_mismatch(found: dict, model: StateSpaceModel) -> Optional[str]:
+def fingerprint_mismatch(found: dict, model: StateSpaceModel) -> str | None:
     """None if the fingerprint ``found`` (from a meta record) is ``model``'s; else what differs."""
     own = _fingerprint(model)
     for field in ("name", "dim", "obs_dim", "process_noise", "obs_noise"):
@@ -156,7 +156,7 @@ def _config_diff(given: networks.NetworkConfig, own: networks.NetworkConfig) -> 
                      if getattr(given, f.name) != getattr(own, f.name))
 
 
-def unpack(trained, problem, network: Optional[networks.NetworkConfig],
+def unpack(trained, problem, network: networks.NetworkConfig | None,
            name: str = "csf_jax.filter"):
     """``(params, network)`` for the filter: raw params pass through unchanged; a ``TrainedPrior``
     is checked against ``problem`` (name, dim, and its fingerprint where the prior records one) and
@@ -298,8 +298,8 @@ def load_dir(directory: str, serves: tuple = ()) -> TrainedPrior:
                       tuple(serves))
 
 
-def load_prior(directory: str, model: Optional[StateSpaceModel] = None,
-               network: Optional[networks.NetworkConfig] = None) -> TrainedPrior:
+def load_prior(directory: str, model: StateSpaceModel | None = None,
+               network: networks.NetworkConfig | None = None) -> TrainedPrior:
     """Load a trained prior written by ``TrainedPrior.save`` (or ``csf_jax.train_prior``).
 
     model: the model it is meant to filter: refused (one-line ValueError) if the prior was made

@@ -57,11 +57,11 @@ def parse_setting(text: str) -> dict:
         try:
             out[name.strip()] = ast.literal_eval(value.strip())
         except (ValueError, SyntaxError):
-            raise argparse.ArgumentTypeError(f"{part!r}: the value is not a Python literal")
+            raise argparse.ArgumentTypeError(f"{part!r}: the value is not a Python literal") from None
     try:
         make_config(out)
     except (ValueError, TypeError) as e:
-        raise argparse.ArgumentTypeError(str(e))
+        raise argparse.ArgumentTypeError(str(e)) from None
     return out
 
 

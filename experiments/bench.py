@@ -55,7 +55,6 @@ import subprocess
 import sys
 import tempfile
 import time
-from typing import Optional
 
 import numpy as np
 
@@ -265,7 +264,7 @@ class Worker:
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "experiments.bench", "--worker", json.dumps(spec)],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
-        self.info: Optional[dict] = None
+        self.info: dict | None = None
 
     def read(self) -> dict:
         for line in self.proc.stdout:

@@ -19,8 +19,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from csf_jax.filters.csf import posterior_sample  # noqa: E402
-from csf_jax.filters.csf import _prior_for  # noqa: E402
+from csf_jax.filters.csf import (
+    _prior_for,  # noqa: E402
+    posterior_sample,  # noqa: E402
+)
 from csf_jax.sde import marginal_std  # noqa: E402
 from csf_jax.ssm import propagate  # noqa: E402
 

@@ -32,8 +32,8 @@ def main(argv=None):
     p.add_argument("--steps", type=particle_count, default=500, help="reverse steps L, at least 2")
     p.add_argument("--seed", type=nonnegative_int, default=0)
     args = p.parse_args(argv)
-    print(f"| problem | guidance | clip | RMSE | non-finite steps | seconds |")
-    print(f"|---|---|---|---|---|---|")
+    print("| problem | guidance | clip | RMSE | non-finite steps | seconds |")
+    print("|---|---|---|---|---|---|")
     for name in args.problems:
         model = problems.get(name)
         keys = jax.random.split(jax.random.key(args.seed), args.runs)

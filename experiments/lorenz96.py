@@ -93,7 +93,7 @@ def cell(name: str, method: str, particles: int, runs: int, steps: int, **settin
     return out
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _letkf_runner(name, model, cfg, radius: float):
     """One compiled LETKF over runs per (setup, radius); the inflation is an argument."""
     static = LETKFStatic(float(radius), csf_jax.ring_localization(model.dim, obs_sites(cfg)))
@@ -102,7 +102,7 @@ def _letkf_runner(name, model, cfg, radius: float):
         in_axes=(0, 0, 0, None)))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _enkf_runner(model):
     """One compiled stochastic EnKF over runs; the inflation is an argument."""
     return jax.jit(jax.vmap(lambda o, e, k, infl: csf_jax.ensemble_kalman_filter(

@@ -20,7 +20,6 @@ import sys
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from csf_jax import problems
 from csf_jax.local_prior import dense_precision, local_statistics

@@ -14,8 +14,8 @@ import os
 import sys
 import time
 
-from experiments import train
 from csf_jax.pretrained import DATASETS, MODEL_DIR
+from experiments import train
 
 
 def main(argv=None):

@@ -96,7 +96,7 @@ def observe_fn(sensor: str):
     raise ValueError(f"unknown sensor {sensor!r}; use 'linear' or 'cubic'")
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def model_for(case: Case) -> StateSpaceModel:
     """Identity drift with process std q: the exact prior of the input ensemble's centres."""
     d = case.dim

@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from csf_jax import networks
+from csf_jax.dsm import fit_unconditional
 from csf_jax.filters.csf import CSFConfig, posterior_sample
 from csf_jax.guidance import GuidanceConfig
 from csf_jax.metrics import wasserstein_1d
@@ -29,7 +30,6 @@ from csf_jax.pretrained import DATASETS, MODEL_FOR, load_pretrained
 from csf_jax.prior import learned_prior, unconditional_prior
 from csf_jax.sde import marginal_std
 from csf_jax.training import generate, load
-from csf_jax.dsm import fit_unconditional
 from experiments._cli import nonnegative_int, positive_int
 
 # The model's own prior: Euler-Maruyama without guidance or inflation, L = 500, pinned (not the

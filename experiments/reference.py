@@ -22,9 +22,9 @@ import time
 import jax
 import numpy as np
 
-from experiments import run as run_mod  # first: it sets XLA's host devices before jax loads
 from csf_jax import problems  # noqa: E402
 from csf_jax.filters.reference import ReferenceConfig  # noqa: E402
+from experiments import run as run_mod  # first: it sets XLA's host devices before jax loads
 from experiments._cli import name_list, positive_int  # noqa: E402
 
 

@@ -47,7 +47,6 @@ import os
 import platform
 import sys
 import time
-from typing import Optional
 
 
 def _one_host_device_per_core() -> None:
@@ -66,8 +65,8 @@ import numpy as np  # noqa: E402
 
 import csf_jax  # noqa: E402
 from csf_jax import CSFConfig, GuidanceConfig, SFConfig, problems  # noqa: E402
-from csf_jax.guidance import MODES  # noqa: E402
 from csf_jax.filters.reference import ReferenceConfig, reference_filter  # noqa: E402
+from csf_jax.guidance import MODES  # noqa: E402
 from csf_jax.pretrained import load_pretrained  # noqa: E402
 from csf_jax.prior import gaussian_prior  # noqa: E402
 from experiments._cli import name_list, nonnegative_int, particle_count, positive_int  # noqa: E402
@@ -158,7 +157,7 @@ def simulate_runs(model, runs: int, particles: int, seed: int):
 def method_fn(method: str, model, config: CSFConfig, sf: SFConfig, pretrained, progress,
               return_ensembles: bool = False, sf_shards: int = 1,
               reference: ReferenceConfig = REFERENCE, prior=None,
-              sf_sampler: Optional[CSFConfig] = None):
+              sf_sampler: CSFConfig | None = None):
     """``(obs (K, m), ens (N, d), key) -> FilterResult`` for one run of ``method``.
 
     pretrained: a ``csf_jax.pretrained.Pretrained`` for CSF (passed whole: the filter checks it
@@ -390,9 +389,9 @@ def sf_shards(runs: int, sf: SFConfig) -> int:
 
 
 def run(name: str, methods=METHODS, runs: int = 10, particles: int = 1000,
-        steps: int = CSFConfig().reverse_steps, seed: int = 0, num_steps: Optional[int] = None, prior: str = "pretrained",
-        out: Optional[str] = None, batch: Optional[int] = None, sf: SFConfig = SFConfig(),
-        method_runs: Optional[dict] = None, progress: bool = True, figures: bool = True,
+        steps: int = CSFConfig().reverse_steps, seed: int = 0, num_steps: int | None = None, prior: str = "pretrained",
+        out: str | None = None, batch: int | None = None, sf: SFConfig = SFConfig(),
+        method_runs: dict | None = None, progress: bool = True, figures: bool = True,
         guidance: str = GuidanceConfig().mode, reference: ReferenceConfig = REFERENCE) -> dict:
     """Simulate ``runs`` trajectories, run ``methods`` on them; returns the results dict (and writes
     ``results.json`` and figures under ``out``).

@@ -22,8 +22,8 @@ import os
 import sys
 import time
 
-from experiments import run as run_mod  # first: it sets XLA's host devices before jax loads
 from csf_jax import problems  # noqa: E402  (isort: after run_mod on purpose)
+from experiments import run as run_mod  # first: it sets XLA's host devices before jax loads
 from experiments._cli import name_list, particle_count, positive_int  # noqa: E402
 
 # The paper's Table (RMSE over 10 runs) and its per-step time table (s, RTX 4090).

@@ -44,7 +44,8 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Callable, NamedTuple, Optional
+from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -96,8 +97,8 @@ class Schedule(NamedTuple):
     noise_on: torch.Tensor
     inflation: float | torch.Tensor = 0.0
     sigma_max: float = 25.0
-    adaptive: Optional["AdaptiveInflation"] = None
-    encode_particles: Optional[int] = None
+    adaptive: AdaptiveInflation | None = None
+    encode_particles: int | None = None
 
 
 def time_of_std(sigma: torch.Tensor, sigma_max: float) -> torch.Tensor:
@@ -159,9 +160,9 @@ class AncestralSchedule(NamedTuple):
     inflation: float | torch.Tensor
     proposals: int
     sigma_max: float = 25.0
-    adaptive: Optional["AdaptiveInflation"] = None
-    encode_particles: Optional[int] = None
-    proposal_df: Optional[int] = None
+    adaptive: AdaptiveInflation | None = None
+    encode_particles: int | None = None
+    proposal_df: int | None = None
 
 
 class AdaptiveInflation(NamedTuple):
@@ -197,7 +198,7 @@ def ancestral_schedule(config: CSFConfig, dtype: torch.dtype = DTYPE) -> Ancestr
                              config.guidance.proposal_df)
 
 
-def _adaptive(config: CSFConfig) -> Optional[AdaptiveInflation]:
+def _adaptive(config: CSFConfig) -> AdaptiveInflation | None:
     """The adaptive-inflation settings of ``config``, or None for a fixed inflation."""
     if not config.adaptive_inflation:
         return None
@@ -205,7 +206,7 @@ def _adaptive(config: CSFConfig) -> Optional[AdaptiveInflation]:
                              config.inflation_statistic)
 
 
-def adaptive_inflation(problem: "TorchProblem", prior_ens: torch.Tensor, y: torch.Tensor,
+def adaptive_inflation(problem: TorchProblem, prior_ens: torch.Tensor, y: torch.Tensor,
                        base: float, settings: AdaptiveInflation,
                        iterations: int = 60) -> torch.Tensor:
     """``csf_jax.inflation.adaptive_inflation`` (0-d tau) for ``prior_ens (N, d)``, ``y (m,)``:
@@ -237,7 +238,7 @@ def adaptive_inflation(problem: "TorchProblem", prior_ens: torch.Tensor, y: torc
     return torch.sqrt(base ** 2 + torch.where(surprised, torch.exp(hi), zero))
 
 
-def step_schedule(sched, problem: "TorchProblem", prior_ens: torch.Tensor, y: torch.Tensor,
+def step_schedule(sched, problem: TorchProblem, prior_ens: torch.Tensor, y: torch.Tensor,
                   guide: torch.Tensor):
     """This filter step's schedule (:class:`AncestralSchedule` or :class:`Schedule`): ``sched``
     itself (fixed inflation, or ``y`` not assimilated), or with the adaptive tau and the score times
@@ -392,7 +393,7 @@ def ensemble_moments(ensemble: torch.Tensor, jitter: float = 1e-6):
     return mean, cov + floor * torch.eye(ensemble.shape[-1], dtype=ensemble.dtype)
 
 
-def condition(nets: Networks, prior_ens: torch.Tensor, encode_particles: Optional[int]):
+def condition(nets: Networks, prior_ens: torch.Tensor, encode_particles: int | None):
     """The prior's context of one filter step: the code of the first ``encode_particles`` particles,
     with a Gaussian base also the moments of all of them (a :class:`GaussianBase`)."""
     code = nets.encoder(prior_ens[:encode_particles])
@@ -443,7 +444,7 @@ def _load_layer_norm(norm: nn.LayerNorm, p: dict) -> None:
     norm.bias.copy_(_t(p["bias"]))
 
 
-def flax_to_torch(params: dict, config: NetworkConfig, dim: Optional[int] = None) -> Networks:
+def flax_to_torch(params: dict, config: NetworkConfig, dim: int | None = None) -> Networks:
     """Torch modules holding the csf_jax parameters ``{"encoder": ..., "score": ...}``.
 
     Args:
@@ -687,7 +688,7 @@ def kalman_tweedie(problem: TorchProblem, y: torch.Tensor, x0_hat: torch.Tensor,
 def resample_posterior(loglik: Callable, y: torch.Tensor, x0_hat: torch.Tensor,
                        prior_precision: torch.Tensor, u: torch.Tensor, chol: torch.Tensor,
                        guide: torch.Tensor, z: torch.Tensor,
-                       gumbel: Optional[torch.Tensor], df: Optional[int] = None) -> torch.Tensor:
+                       gumbel: torch.Tensor | None, df: int | None = None) -> torch.Tensor:
     """``csf_jax.guidance.resample_posterior``: one draw per particle of
     ``N(x_0; x0_hat, P) p(y | x_0)`` by importance resampling of K Laplace candidates
     ``u + chol^{-T} z``.
@@ -779,7 +780,7 @@ class AncestralNoise(NamedTuple):
     """
 
     post: torch.Tensor
-    gumbel: Optional[torch.Tensor]
+    gumbel: torch.Tensor | None
     bridge: torch.Tensor
 
 
@@ -794,7 +795,7 @@ class StepNoise(NamedTuple):
 
     prop: torch.Tensor
     x_init: torch.Tensor
-    eps: Optional[torch.Tensor | AncestralNoise]
+    eps: torch.Tensor | AncestralNoise | None
 
 
 def _em_call(step: Callable, sched: Schedule, l: int, x, y, code, guide, eps) -> torch.Tensor:
@@ -805,8 +806,8 @@ def _em_call(step: Callable, sched: Schedule, l: int, x, y, code, guide, eps) ->
 
 def posterior_sample(step: Callable, sched: Schedule, x_init: torch.Tensor, y: torch.Tensor,
                      code: torch.Tensor, guide: torch.Tensor,
-                     eps: Optional[torch.Tensor] = None,
-                     generator: Optional[torch.Generator] = None) -> torch.Tensor:
+                     eps: torch.Tensor | None = None,
+                     generator: torch.Generator | None = None) -> torch.Tensor:
     """Euler-Maruyama: the L reverse steps from ``x_init (N, d)`` (already scaled); returns
     ``(N, d)``.
 
@@ -819,8 +820,8 @@ def posterior_sample(step: Callable, sched: Schedule, x_init: torch.Tensor, y: t
     return x
 
 
-def draw_level(shape: tuple, proposals: int, generator: Optional[torch.Generator] = None,
-               dtype: torch.dtype = DTYPE, df: Optional[int] = None):
+def draw_level(shape: tuple, proposals: int, generator: torch.Generator | None = None,
+               dtype: torch.dtype = DTYPE, df: int | None = None):
     """One level's ancestral draws for ``shape = (N, d)``: ``(z_post (K, N, d), gumbel (K, N) or
     None, z_bridge (N, d))``; ``z_post`` standard normal, or Student-t with ``df`` degrees of
     freedom; Gumbel as ``-log`` of a standard exponential."""
@@ -850,8 +851,8 @@ def _ancestral_call(step: Callable, sched: AncestralSchedule, l: int, x, u, y, c
 
 def ancestral_sample(step: Callable, sched: AncestralSchedule, x_init: torch.Tensor,
                      y: torch.Tensor, code: torch.Tensor, precision: torch.Tensor,
-                     guide: torch.Tensor, noise: Optional[AncestralNoise] = None,
-                     generator: Optional[torch.Generator] = None) -> torch.Tensor:
+                     guide: torch.Tensor, noise: AncestralNoise | None = None,
+                     generator: torch.Generator | None = None) -> torch.Tensor:
     """The ancestral sampler's L levels from ``x_init (N, d)`` (the noised prior ensemble);
     returns ``(N, d)``. precision: ``(d, d)`` from :func:`gaussian_precision`.
 
@@ -869,8 +870,8 @@ def ancestral_sample(step: Callable, sched: AncestralSchedule, x_init: torch.Ten
 @torch.no_grad()
 def filter_step(nets: Networks, problem: TorchProblem, step: Callable, sched,
                 ensemble: torch.Tensor,
-                y: torch.Tensor, guide: torch.Tensor, noise: Optional[StepNoise] = None,
-                generator: Optional[torch.Generator] = None) -> torch.Tensor:
+                y: torch.Tensor, guide: torch.Tensor, noise: StepNoise | None = None,
+                generator: torch.Generator | None = None) -> torch.Tensor:
     """One CSF filter step: propagate, encode the prior ensemble, L reverse steps of the sampler
     that ``sched`` belongs to (:class:`AncestralSchedule` or :class:`Schedule`; ``step`` from
     :func:`make_reverse_step` with the same config).
@@ -915,7 +916,7 @@ def first_reverse_step(nets: Networks, step: Callable, sched, ensemble: torch.Te
 @torch.no_grad()
 def csf_filter(nets: Networks, problem: TorchProblem, obs: torch.Tensor, ensemble: torch.Tensor,
                config: CSFConfig = CSFConfig(), compile: bool = False, seed: int = 0,
-               step: Optional[Callable] = None):
+               step: Callable | None = None):
     """``K`` filter steps; returns ``(mean (K, d), std (K, d), last posterior ensemble (N, d))``.
 
     obs: ``(K, m)``.  ensemble: ``(N, d)`` initial ensemble.  config: the sampler (and its

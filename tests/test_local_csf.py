@@ -11,11 +11,22 @@ import numpy as np
 import pytest
 
 import csf_jax
-from csf_jax.filters.local_csf import (LocalCSFConfig, ancestral_sample, conjugate_gradient,
-                                       flow_sample, local_filter)
-from csf_jax.local_prior import (dense_precision, local_statistics, precision_blocks,
-                                 precision_diagonal, precision_matvec, precision_noise,
-                                 ring_predecessors)
+from csf_jax.filters.local_csf import (
+    LocalCSFConfig,
+    ancestral_sample,
+    conjugate_gradient,
+    flow_sample,
+    local_filter,
+)
+from csf_jax.local_prior import (
+    dense_precision,
+    local_statistics,
+    precision_blocks,
+    precision_diagonal,
+    precision_matvec,
+    precision_noise,
+    ring_predecessors,
+)
 from csf_jax.problems.linear import linear_gaussian, to_model
 
 

@@ -8,8 +8,15 @@ import pytest
 
 import csf_jax
 from csf_jax import problems
-from csf_jax.filters.letkf import (LETKFConfig, Localization, gaspari_cohn, letkf, letkf_analysis,
-                                   local_obs, ring_localization)
+from csf_jax.filters.letkf import (
+    LETKFConfig,
+    Localization,
+    gaspari_cohn,
+    letkf,
+    letkf_analysis,
+    local_obs,
+    ring_localization,
+)
 from csf_jax.problems.linear import linear_gaussian, to_model
 from csf_jax.problems.lorenz96 import Lorenz96Config, obs_sites, rk4_step, tendency
 

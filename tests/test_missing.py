@@ -14,8 +14,13 @@ import pytest
 import csf_jax
 from csf_jax.filters.kalman import kalman_filter_cov
 from csf_jax.problems.linear import linear_gaussian, to_model
-from csf_jax.ssm import (ObservationNoise, drop_observations, gaussian_noise, gaussian_noise_cov,
-                         log_likelihood)
+from csf_jax.ssm import (
+    ObservationNoise,
+    drop_observations,
+    gaussian_noise,
+    gaussian_noise_cov,
+    log_likelihood,
+)
 
 Q_FULL = [[0.09, 0.03, 0.0, 0.0], [0.03, 0.09, 0.02, 0.0], [0.0, 0.02, 0.06, 0.01],
           [0.0, 0.0, 0.01, 0.05]]

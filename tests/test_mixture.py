@@ -1,7 +1,6 @@
 """CSF's mixture prior: component evidences against their closed form, the selection's limits,
 the Bayes-factor memory, and CSF with it against the Kalman filter."""
 
-import dataclasses
 
 import jax
 import jax.numpy as jnp

@@ -7,8 +7,13 @@ import pytest
 from jax.scipy.special import logsumexp
 
 from csf_jax import networks
-from csf_jax.prior import (ensemble_moments, exact_mixture_prior, gaussian_prior, learned_prior,
-                           mixture_score)
+from csf_jax.prior import (
+    ensemble_moments,
+    exact_mixture_prior,
+    gaussian_prior,
+    learned_prior,
+    mixture_score,
+)
 from csf_jax.sde import marginal_std
 
 
@@ -118,8 +123,8 @@ def test_learned_prior_encodes_the_noisy_ensemble():
 def test_single_ensemble_fit_learns_a_gaussian():
     """fit_unconditional on N(2, 0.5^2) data: the learned score at small noise points to the mean,
     and the training loss falls."""
-    from csf_jax.prior import unconditional_prior
     from csf_jax.dsm import fit_unconditional
+    from csf_jax.prior import unconditional_prior
 
     config = networks.NetworkConfig(hidden=16, heads=2, blocks=1, code_dim=8, score_hidden=64)
     data = 2.0 + 0.5 * jax.random.normal(jax.random.key(0), (512, 1))

@@ -19,12 +19,25 @@ import numpy as np  # noqa: E402
 
 import csf_jax  # noqa: E402
 from csf_jax import CSFConfig, NetworkConfig, networks, problems  # noqa: E402
-from csf_jax.guidance import GuidanceConfig, dps_gradient, guidance_displacement  # noqa: E402
-from csf_jax.guidance import kalman_tweedie, student_t  # noqa: E402
+from csf_jax.guidance import (  # noqa: E402
+    GuidanceConfig,
+    dps_gradient,
+    guidance_displacement,
+    kalman_tweedie,
+    student_t,
+)
 from csf_jax.inflation import adaptive_inflation  # noqa: E402
 from csf_jax.prior import gaussian_precision  # noqa: E402
-from csf_jax.sde import (bridge, diffusion_sq, inflated_time, marginal_std,  # noqa: E402
-                         marginal_std_host, noise_levels, reverse_grid, time_of_std)
+from csf_jax.sde import (  # noqa: E402
+    bridge,
+    diffusion_sq,
+    inflated_time,
+    marginal_std,
+    marginal_std_host,
+    noise_levels,
+    reverse_grid,
+    time_of_std,
+)
 from csf_jax.ssm import log_likelihood  # noqa: E402
 from experiments import torch_csf as tc  # noqa: E402
 
@@ -46,7 +59,7 @@ def one_torch_thread():
     torch.set_num_threads(previous)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _weights(config_name: str, dim: int = D):
     """``(config, jax params, torch Networks)``, random init (cached: init_params compiles)."""
     config = CONFIGS[config_name]

@@ -15,7 +15,7 @@ import pytest
 
 import csf_jax
 from csf_jax import networks, problems
-from csf_jax.pretrained import MODEL_FOR, load_pretrained
+from csf_jax.pretrained import load_pretrained
 from csf_jax.training import DatasetConfig, TrainConfig, generate, load, train
 from csf_jax.training.data import Dataset
 from csf_jax.training.train import eval_loss, init_state, make_batch

@@ -28,7 +28,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Callable, NamedTuple, Optional, Union
+from collections.abc import Callable
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -37,17 +38,42 @@ import numpy as np
 from csf_jax import _checks, mixture, networks, trained
 from csf_jax.filters.driver import Method, StepOutput, run
 from csf_jax.filters.result import FilterResult
-from csf_jax.guidance import (GuidanceConfig, dps_gradient, guidance_displacement, kalman_tweedie,
-                              resample_posterior)
+from csf_jax.guidance import (
+    GuidanceConfig,
+    dps_gradient,
+    guidance_displacement,
+    kalman_tweedie,
+    resample_posterior,
+)
 from csf_jax.inflation import STATISTICS, adaptive_inflation
-from csf_jax.networks import NetworkConfig
 from csf_jax.mixture import MixtureConfig
-from csf_jax.prior import (PriorScore, ensemble_moments, exact_mixture_prior, gaussian_precision,
-                           gaussian_prior, learned_prior)
-from csf_jax.sde import (bridge, diffusion_sq, inflated_time, marginal_std, marginal_std_host,
-                         noise_levels, reverse_grid, time_of_std)
-from csf_jax.ssm import (StateSpaceModel, curvature, is_isotropic, log_likelihood, process_draws,
-                         tail_df)
+from csf_jax.networks import NetworkConfig
+from csf_jax.prior import (
+    PriorScore,
+    ensemble_moments,
+    exact_mixture_prior,
+    gaussian_precision,
+    gaussian_prior,
+    learned_prior,
+)
+from csf_jax.sde import (
+    bridge,
+    diffusion_sq,
+    inflated_time,
+    marginal_std,
+    marginal_std_host,
+    noise_levels,
+    reverse_grid,
+    time_of_std,
+)
+from csf_jax.ssm import (
+    StateSpaceModel,
+    curvature,
+    is_isotropic,
+    log_likelihood,
+    process_draws,
+    tail_df,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -112,8 +138,8 @@ class CSFConfig:
     inflation_threshold: float = 2.0
     inflation_max: float = 10.0
     inflation_statistic: str = "median"
-    encode_particles: Optional[int] = 256
-    mixture: Optional[MixtureConfig] = None
+    encode_particles: int | None = 256
+    mixture: MixtureConfig | None = None
 
     def __post_init__(self):
         if self.reverse_steps < 2:
@@ -157,11 +183,11 @@ class SamplerStart(NamedTuple):
       adaptive one of ``csf_jax.inflation`` (a scalar array).
     """
 
-    precision: Optional[jax.Array]
-    tau: Union[float, jax.Array]
+    precision: jax.Array | None
+    tau: float | jax.Array
 
 
-def step_inflation(config: CSFConfig, prior_ens, y=None, model: Optional[StateSpaceModel] = None,
+def step_inflation(config: CSFConfig, prior_ens, y=None, model: StateSpaceModel | None = None,
                    guide=1.0):
     """This filter step's prior inflation ``tau``: fixed (``config.prior_inflation``, a Python
     float, so that the samplers keep their static shortcut for 0), or adaptive (a traced scalar) from
@@ -176,7 +202,7 @@ def step_inflation(config: CSFConfig, prior_ens, y=None, model: Optional[StateSp
     return jnp.where(guide > 0, adaptive, tau).astype(prior_ens.dtype)
 
 
-def sampler_start(config: CSFConfig, prior_ens, key, y=None, model: Optional[StateSpaceModel] = None,
+def sampler_start(config: CSFConfig, prior_ens, key, y=None, model: StateSpaceModel | None = None,
                   guide=1.0):
     """The reverse process's first state ``(N, d)`` and its ``SamplerStart``.
 
@@ -304,7 +330,7 @@ def particle_sampler(model: StateSpaceModel, prior: PriorScore, config: CSFConfi
                          out_specs=P("particles"), check_vma=False)
 
 
-def _prior_for(params, prior: Optional[PriorScore], network: Optional[NetworkConfig],
+def _prior_for(params, prior: PriorScore | None, network: NetworkConfig | None,
                config: CSFConfig) -> PriorScore:
     if prior is not None:
         return prior
@@ -364,10 +390,10 @@ CSF = Method("csf_jax.filter", _init, _step)
 
 
 def csf_filter(params, obs, ensemble, *, problem: StateSpaceModel, key,
-               prior: Optional[PriorScore] = None, network: Optional[NetworkConfig] = None,
+               prior: PriorScore | None = None, network: NetworkConfig | None = None,
                config: CSFConfig = CSFConfig(), inputs=None, return_ensembles: bool = False,
                check_finite: bool = True,
-               progress: Optional[Callable[[jax.Array], None]] = None,
+               progress: Callable[[jax.Array], None] | None = None,
                shards: int = 1) -> FilterResult:
     """Filter ``obs`` with the Conditional Score-based Filter.
 

@@ -17,7 +17,8 @@ means 'not observed' and reaches ``step`` as is: each method leaves it out of it
 from __future__ import annotations
 
 import functools
-from typing import Any, Callable, NamedTuple, Optional
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -38,7 +39,7 @@ class StepOutput(NamedTuple):
 
     mean: jax.Array
     std: jax.Array
-    ensemble: Optional[jax.Array] = None
+    ensemble: jax.Array | None = None
     info: dict = {}
 
 
@@ -65,7 +66,7 @@ class Method(NamedTuple):
 
 def run(method: Method, obs, state0, *, model: StateSpaceModel, key, config=None, params=None,
         inputs=None, return_ensembles: bool = False, check_finite: bool = True,
-        progress: Optional[Callable[[jax.Array], None]] = None) -> FilterResult:
+        progress: Callable[[jax.Array], None] | None = None) -> FilterResult:
     """Run ``method`` over ``obs (K, m)`` from ``state0`` (an ``(N, d)`` ensemble for the ensemble
     filters); see the module docstring. ``inputs``: the per-step inputs of a time-varying model,
     a pytree whose leaves have leading axis K."""

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -40,7 +40,7 @@ class Localization(NamedTuple):
 
     state: tuple
     obs: tuple
-    period: Optional[float] = None
+    period: float | None = None
 
 
 def ring_localization(dim: int, obs_sites) -> Localization:

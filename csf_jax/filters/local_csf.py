@@ -38,7 +38,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Callable, NamedTuple, Optional
+from collections.abc import Callable
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -48,12 +49,22 @@ from csf_jax import _linalg
 from csf_jax.filters.driver import Method, StepOutput, run
 from csf_jax.filters.letkf import Localization
 from csf_jax.filters.result import FilterResult
-from csf_jax.local_prior import (LocalStats, local_statistics, precision_blocks,
-                                 precision_matvec, precision_noise)
+from csf_jax.local_prior import (
+    LocalStats,
+    local_statistics,
+    precision_blocks,
+    precision_matvec,
+    precision_noise,
+)
 from csf_jax.sde import bridge, marginal_std_host, noise_levels
-from csf_jax.ssm import (StateSpaceModel, is_additive, log_likelihood, observed, process_draws,
-                         residual)
-
+from csf_jax.ssm import (
+    StateSpaceModel,
+    is_additive,
+    log_likelihood,
+    observed,
+    process_draws,
+    residual,
+)
 
 SAMPLERS = ("flow", "ancestral")
 
@@ -365,7 +376,7 @@ def point_sites(model: StateSpaceModel, localization: Localization, probe) -> np
 def local_filter(obs, ensemble, *, problem: StateSpaceModel, key,
                  localization: Localization, config: LocalCSFConfig = LocalCSFConfig(),
                  return_ensembles: bool = False, check_finite: bool = True,
-                 progress: Optional[Callable[[jax.Array], None]] = None) -> FilterResult:
+                 progress: Callable[[jax.Array], None] | None = None) -> FilterResult:
     """Filter ``obs`` with the local CSF.
 
     Args:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -29,10 +29,10 @@ class FilterResult(NamedTuple):
 
     mean: jax.Array
     std: jax.Array
-    ensembles: Optional[jax.Array] = None
-    ess: Optional[jax.Array] = None
-    finite: Optional[jax.Array] = None
-    info: Optional[dict] = None
+    ensembles: jax.Array | None = None
+    ess: jax.Array | None = None
+    finite: jax.Array | None = None
+    info: dict | None = None
 
 
 def mark_nonfinite(result: FilterResult, obs) -> FilterResult:

@@ -12,19 +12,20 @@ One jitted ``lax.scan`` over the K observations, carrying (ensemble, score-net v
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable, NamedTuple, Optional
+from collections.abc import Callable
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import optax
 
 from csf_jax import networks
+from csf_jax.dsm import dsm_fit
 from csf_jax.filters.csf import CSFConfig, particle_sampler, sampler_start
 from csf_jax.filters.driver import Method, StepOutput, run
 from csf_jax.filters.result import FilterResult
 from csf_jax.prior import unconditional_prior
 from csf_jax.ssm import StateSpaceModel, process_draws
-from csf_jax.dsm import dsm_fit
 
 
 @dataclasses.dataclass(frozen=True)
@@ -115,7 +116,7 @@ SCORE_FILTER = Method("score_filter", _init, _step, _check)
 def score_filter(obs, ensemble, *, problem: StateSpaceModel, key, config: SFConfig = SFConfig(),
                  sampler: CSFConfig = CSFConfig(), inputs=None, return_ensembles: bool = False,
                  check_finite: bool = True,
-                 progress: Optional[Callable[[jax.Array], None]] = None,
+                 progress: Callable[[jax.Array], None] | None = None,
                  shards: int = 1) -> FilterResult:
     """Filter ``obs`` with the score-based filter (a score net trained online at every step).
 

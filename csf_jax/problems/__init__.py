@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import dataclasses
 
+from csf_jax.problems import zoo
 from csf_jax.problems.cubic import CubicConfig, cubic_problem
 from csf_jax.problems.lorenz96 import Lorenz96Config, lorenz96_problem
-from csf_jax.problems import zoo
 from csf_jax.problems.wells import WellConfig, well_problem
 from csf_jax.ssm import StateSpaceModel
 

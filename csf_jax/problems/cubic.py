@@ -17,8 +17,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from csf_jax.ssm import (StateSpaceModel, cauchy_noise, gaussian_noise, jump_shock,
-                         random_shock_times)
+from csf_jax.ssm import (
+    StateSpaceModel,
+    cauchy_noise,
+    gaussian_noise,
+    jump_shock,
+    random_shock_times,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,7 +65,7 @@ def coupling_matrix(dim: int) -> np.ndarray:
     return -0.5 * np.eye(dim, dtype=np.float32) + 0.1 * np.eye(dim, k=1, dtype=np.float32)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def cubic_problem(config: CubicConfig = CubicConfig()) -> StateSpaceModel:
     """The cubic-sensor ``StateSpaceModel``; cached, so equal configs give the same model."""
     c = config

@@ -12,14 +12,19 @@ and jitted filters reuse their compilations.
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from csf_jax.ssm import (StateSpaceModel, covariance_tuple, gaussian_noise, gaussian_noise_cov,
-                         gaussian_process_noise)
+from csf_jax.ssm import (
+    StateSpaceModel,
+    covariance_tuple,
+    gaussian_noise,
+    gaussian_noise_cov,
+    gaussian_process_noise,
+)
 
 
 class LinearGaussian(NamedTuple):
@@ -43,8 +48,8 @@ class LinearGaussian(NamedTuple):
     p0_std: float
     num_steps: int
     name: str
-    Q: Optional[np.ndarray] = None
-    R: Optional[np.ndarray] = None
+    Q: np.ndarray | None = None
+    R: np.ndarray | None = None
 
     def process_cov(self) -> np.ndarray:
         """``(d, d)``: ``Q``, or ``q_std^2 I``."""
@@ -138,10 +143,10 @@ def to_model(lg: LinearGaussian) -> StateSpaceModel:
                         None if lg.R is None else _as_tuple(lg.R))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _build_model(A: tuple, H: tuple, q_std: float, r_std: float, m0: tuple, p0_std: float,
-                 num_steps: int, name: str, Q: Optional[tuple] = None,
-                 R: Optional[tuple] = None) -> StateSpaceModel:
+                 num_steps: int, name: str, Q: tuple | None = None,
+                 R: tuple | None = None) -> StateSpaceModel:
     """Build the model's closures (no shocks); matrices are cast to the particle's dtype."""
     A_np, H_np, m0_np = np.array(A), np.array(H), np.array(m0)
     dim, obs_dim = A_np.shape[0], H_np.shape[0]

@@ -100,7 +100,7 @@ def obs_sites(config: Lorenz96Config) -> np.ndarray:
     return np.arange(0, config.dim, step)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def attractor_point(config: Lorenz96Config) -> np.ndarray:
     """``(d,)`` float32: ``F`` with site 0 raised by 0.01, integrated ``spinup_steps`` steps."""
     x = np.full(config.dim, config.forcing, np.float64)
@@ -114,7 +114,7 @@ def attractor_point(config: Lorenz96Config) -> np.ndarray:
     return out
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def lorenz96_problem(config: Lorenz96Config = Lorenz96Config()) -> StateSpaceModel:
     """The Lorenz-96 ``StateSpaceModel``; cached, so equal configs give the same model."""
     c = config

@@ -18,10 +18,14 @@ import functools
 import math
 
 import jax
-import jax.numpy as jnp
 
-from csf_jax.ssm import (StateSpaceModel, gaussian_noise, jump_shock, random_shock_times,
-                         reflect_shock)
+from csf_jax.ssm import (
+    StateSpaceModel,
+    gaussian_noise,
+    jump_shock,
+    random_shock_times,
+    reflect_shock,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,7 +76,7 @@ def potential(x, wells: str, C: float):
     return v * (x - 0.5) ** 2 if wells == "triple" else v
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def well_problem(config: WellConfig = WellConfig()) -> StateSpaceModel:
     """The double- or triple-well ``StateSpaceModel`` (d = m = 1); cached, so equal configs give the
     same (hashable) model and jit caches are reused."""

@@ -31,8 +31,13 @@ import numpy as np
 
 from csf_jax.problems.linear import linear_gaussian, to_model
 from csf_jax.problems.lorenz96 import rk4
-from csf_jax.ssm import (StateSpaceModel, gaussian_noise, gaussian_process_noise, poisson_likelihood,
-                         volatility_likelihood)
+from csf_jax.ssm import (
+    StateSpaceModel,
+    gaussian_noise,
+    gaussian_process_noise,
+    poisson_likelihood,
+    volatility_likelihood,
+)
 
 
 def _gaussian_start(mean, std):
@@ -59,7 +64,7 @@ class PendulumConfig:
     num_steps: int = 50
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def pendulum(c: PendulumConfig = PendulumConfig()) -> StateSpaceModel:
     def drift(x):
         return jnp.stack([x[0] + c.dt * x[1], x[1] - c.dt * jnp.sin(x[0])])
@@ -86,7 +91,7 @@ def lorenz63_tendency(x):
                       x[0] * x[1] - 8.0 / 3.0 * x[2]])
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def lorenz63(c: Lorenz63Config = Lorenz63Config()) -> StateSpaceModel:
     def drift(x):
         return jax.lax.fori_loop(0, c.substeps, lambda i, x: rk4(lorenz63_tendency, x, c.dt), x)
@@ -114,7 +119,7 @@ class BearingsConfig:
     num_steps: int = 60
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def bearings(c: BearingsConfig = BearingsConfig()) -> StateSpaceModel:
     F = np.array([[1, 0, c.dt, 0], [0, 1, 0, c.dt], [0, 0, 1, 0], [0, 0, 0, 1]], np.float32)
     sensors = np.asarray(c.sensors, np.float32)
@@ -153,7 +158,7 @@ def _axis_rotation(angle: float) -> np.ndarray:
     return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def folding(c: FoldingConfig = FoldingConfig()) -> StateSpaceModel:
     R = _axis_rotation(c.angle).astype(np.float32)
 
@@ -176,7 +181,7 @@ class UNGMConfig:
     num_steps: int = 100
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def ungm(c: UNGMConfig = UNGMConfig()) -> StateSpaceModel:
     def drift(x, step):
         k = jnp.asarray(step.k, x.dtype)
@@ -200,7 +205,7 @@ class VolatilityConfig:
     num_steps: int = 200
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def stochastic_volatility(c: VolatilityConfig = VolatilityConfig()) -> StateSpaceModel:
     stationary = c.sigma / np.sqrt(1.0 - c.phi ** 2)
     truth, ensemble = _gaussian_start([0.0], stationary)
@@ -220,7 +225,7 @@ class PoissonConfig:
     num_steps: int = 100
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def poisson_counts(c: PoissonConfig = PoissonConfig()) -> StateSpaceModel:
     A = c.radius * np.array([[np.cos(c.angle), -np.sin(c.angle)],
                              [np.sin(c.angle), np.cos(c.angle)]], np.float32)
@@ -245,7 +250,7 @@ class Linear20Config:
     num_steps: int = 100
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def linear20_gaussian(c: Linear20Config = Linear20Config()):
     """The ``LinearGaussian`` (for the Kalman filter) of ``linear20``."""
     H = np.eye(c.dim)[::2]

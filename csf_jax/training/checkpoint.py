@@ -13,7 +13,7 @@ damaged one aside to ``<dir>.damaged-<step>`` (never deleting it) and says so in
 from __future__ import annotations
 
 import os
-from typing import Callable
+from collections.abc import Callable
 
 import jax
 import orbax.checkpoint as ocp

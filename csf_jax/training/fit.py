@@ -23,7 +23,6 @@ import dataclasses
 import os
 import sys
 import time
-from typing import Optional, Union
 
 import jax
 import jax.numpy as jnp
@@ -75,7 +74,7 @@ def _check_model(model) -> StateSpaceModel:
     return model
 
 
-def train_prior(model: Union[StateSpaceModel, str], key, *, directory: Optional[str] = None,
+def train_prior(model: StateSpaceModel | str, key, *, directory: str | None = None,
                 dataset: DatasetConfig = DATASET, config: TrainConfig = TRAIN,
                 network: networks.NetworkConfig = NETWORK, verbose: bool = True) -> TrainedPrior:
     """Train a CSF prior for ``model``; returns a ``TrainedPrior`` for ``csf_jax.filter``.
