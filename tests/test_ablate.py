@@ -21,7 +21,7 @@ def test_parse_setting():
             ablate.parse_setting(bad)
 
 
-@pytest.mark.slow  # default-run budget (issue 13's tutorial); run with -m slow
+@pytest.mark.slow  # kept out of the default run's time budget; run with -m slow
 def test_tiny_ablation_rows(tmp_path):
     rows = ablate.ablate("double_well", 1, [{"reverse_steps": 3},
                                             {"reverse_steps": 3, "adaptive_inflation": True}],

@@ -61,7 +61,7 @@ def test_gaussian_prior_csf_tracks_kalman(kalman_case, x64):
     assert err.std_rms < 0.15, err
 
 
-@pytest.mark.slow  # default-run budget (issue 13's tutorial); run with -m slow
+@pytest.mark.slow  # kept out of the default run's time budget; run with -m slow
 def test_paper_skip_first_observation(kalman_case, x64):
     """assimilate_first=False (the paper's 1{k>0}) samples the prior at step 1: further from Kalman
     there, identical machinery after."""
@@ -116,7 +116,7 @@ def test_learned_prior_under_vmap_and_same_key_same_result():
     np.testing.assert_allclose(stacked.mean[1], c.mean, rtol=1e-4, atol=1e-4)
 
 
-@pytest.mark.slow  # default-run budget (issue 13's tutorial); run with -m slow
+@pytest.mark.slow  # kept out of the default run's time budget; run with -m slow
 def test_params_can_be_vmapped_too():
     """params is a plain pytree argument: vmap over two sets of weights."""
     model, _, obs, ens = _small_run("double_well", num_steps=2)

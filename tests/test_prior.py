@@ -89,7 +89,7 @@ def test_gaussian_base_network_with_zero_output_is_the_gaussian_prior():
         networks.NetworkConfig(base="mixture")
 
 
-@pytest.mark.slow  # default-run budget (issue 13's tutorial); run with -m slow
+@pytest.mark.slow  # kept out of the default run's time budget; run with -m slow
 def test_gaussian_base_score_takes_one_noise_level_per_row():
     """Training evaluates the Gaussian-base score with one t per target: the same as row by row."""
     cfg = networks.NetworkConfig(base="gaussian", hidden=16, heads=2, blocks=1, code_dim=8,

@@ -32,7 +32,7 @@ def test_matches_kalman_on_a_separable_linear_gaussian_model(x64):
     assert float(jnp.sqrt(jnp.mean(((blind.mean - kf.mean) / kf.std) ** 2))) > 1.0
 
 
-@pytest.mark.slow  # default-run budget (issue 13's tutorial); run with -m slow
+@pytest.mark.slow  # kept out of the default run's time budget; run with -m slow
 def test_same_key_same_result_and_vmap():
     model = problems.get("cauchy", num_steps=6)
     _, obs = csf_jax.simulate(model, jax.random.key(0))

@@ -35,7 +35,7 @@ def test_sf_tracks_kalman(case):
     assert case.errors(case.prior_mean).mean_rms > 2.5 * 0.5
 
 
-@pytest.mark.slow  # default-run budget (issue 13's tutorial); run with -m slow
+@pytest.mark.slow  # kept out of the default run's time budget; run with -m slow
 def test_same_key_same_result_and_vmap(case):
     obs, ens = case.obs[:3], case.ensemble[:64]
     cfg = SFConfig(train_steps=5, warmup_steps=10, batch=32, network=SMALL_NET)

@@ -239,7 +239,7 @@ def test_reverse_steps_match_with_injected_noise(config_name, name):
 def test_filter_step_matches_with_injected_noise():
     """Propagate + encode + L = 20 reverse steps with identical noise: the same particles
     (measured max error 1.3e-4 relative to the scale ~15 with jax 0.10.2 and torch 2.13, 2e-5 with
-    the first session's versions: one-ulp differences grow over the clipped steps); we allow 3e-4.
+    older jax and torch releases: one-ulp differences grow over the clipped steps); we allow 3e-4.
     Without prior inflation: with it, the one-ulp differences of the inflated score times grow over the 20
     coarse steps to ~2e-4 (the five-step windows above check the inflated steps)."""
     name = "cubic10_corr"
@@ -430,13 +430,13 @@ def test_ancestral_filter_matches_with_injected_noise(name, config_name, csf, nu
 ])
 def test_ancestral_filter_matches_in_float64(x64, name, config_name, csf, num_steps, tol):
     """The same in float64 on both sides: the default config (L = 20, one Gauss-Newton iteration,
-    adaptive inflation), L = 10, and the previous default (L = 50, two iterations, fixed 0.5). The
-    sampler can amplify rounding enormously: with the previous default a relative perturbation of
+    adaptive inflation), L = 10, and a fixed-inflation config (L = 50, two iterations, fixed 0.5). The
+    sampler can amplify rounding enormously: with the fixed-inflation config a relative perturbation of
     1e-7 of the initial ensemble moved single cubic-sensor particles by O(0.1-1) after one filter
     step (the Fisher scoring of ``x^3`` and the resampling pick switch on rounding-level
     differences), and float64 differences of 1e-16 grew to 1e-5 there. Measured (the suite's XLA
     flags, conftest.py; the figures move with XLA's operation order): default config, double well
-    3e-14 and 4e-13 over two steps, cubic 4e-13; cubic L = 10: 1e-12 per step; previous default,
+    3e-14 and 4e-13 over two steps, cubic 4e-13; cubic L = 10: 1e-12 per step; fixed-inflation config,
     cubic, one step: 1e-5. A wrong formula moves particles by O(1)."""
     errors = _ancestral_errors(name, config_name, csf, num_steps, np.float64)
     assert np.all(errors <= tol), errors
@@ -515,8 +515,8 @@ def test_compiled_step_matches_eager(guidance):
     """torch.compile of one reverse step (20-60 s to compile), both samplers: the same output as
     eager up to Inductor's reordering of float32 operations. One step, not a whole filter step: 20
     clipped DPS steps amplify those one-ulp differences to 2e-4 to 1e-3 relative to the scale, and
-    differently from one compilation to the next (measured 2026-11-23, with the previous and the
-    new default inflation alike)."""
+    differently from one compilation to the next (measured 2026-11-23, with fixed and adaptive inflation
+    alike)."""
     config, params, tnets = _weights("small")
     tp, n = tc.torch_problem("cubic10_corr"), 48
     csf = CSFConfig(reverse_steps=20, guidance=guidance)

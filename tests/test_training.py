@@ -110,7 +110,7 @@ def test_gaussian_base_model_trains_and_starts_at_the_gaussian(tmp_path):
               verbose=False)
 
 
-@pytest.mark.slow  # default-run budget (issue 13's tutorial); run with -m slow
+@pytest.mark.slow  # kept out of the default run's time budget; run with -m slow
 def test_mismatched_checkpoint_fails_clearly(tiny_data, tmp_path):
     cfg = TrainConfig(steps=2, batch_sets=2, targets_per_set=4, set_sizes=(8,), save_every=2)
     out = str(tmp_path / "ckpt")
