@@ -31,7 +31,7 @@ import csf_jax
 from csf_jax import CSFConfig, GuidanceConfig, problems
 from csf_jax.pretrained import load_dir, load_pretrained
 from csf_jax.prior import gaussian_prior
-from experiments._cli import positive_int
+from experiments._cli import parser, positive_int
 from experiments.run import PRIORS, _errors, machine, simulate_runs
 
 
@@ -63,8 +63,6 @@ def parse_setting(text: str) -> dict:
     except (ValueError, TypeError) as e:
         raise argparse.ArgumentTypeError(str(e)) from None
     return out
-
-
 
 
 def ablate(name: str, runs: int, settings, particles: int = 1000, seed: int = 0,
@@ -137,28 +135,53 @@ def render(path: str) -> str:
     return table(kept, header=True)
 
 
-def main(argv=None):
-    p = argparse.ArgumentParser(prog="python -m experiments.ablate", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("problem", nargs="?", choices=problems.NAMES)
-    p.add_argument("--runs", type=positive_int, default=2)
+DESCRIPTION = ("CSF ablations on the first runs of the table: EnKF and CSF with each --setting "
+               "on the same data and keys; print the markdown table and append the rows to --out "
+               "(JSON).")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m experiments.ablate``."""
+    p = parser("ablate", DESCRIPTION)
+    p.add_argument("problem", nargs="?", choices=problems.NAMES, metavar="PROBLEM",
+                   help="the problem, one of %(choices)s (not needed with --render)")
+    p.add_argument("--runs", type=positive_int, default=2,
+                   help="the table's first runs to filter (default %(default)s)")
     p.add_argument("--setting", type=parse_setting, action="append", default=None,
-                   help="CSFConfig fields, e.g. reverse_steps=20,prior_inflation=0.2 (repeatable; "
-                        "none: the default config)")
+                   help="CSFConfig fields, e.g. reverse_steps=20,prior_inflation=0.2; "
+                        "guidance.<field> sets a GuidanceConfig field (repeatable; default: one "
+                        "row with the default config)")
     p.add_argument("--prior", choices=PRIORS, default="pretrained",
-                   help="CSF's prior: the shipped model (default), the ensemble's Gaussian, or the "
-                        "exact Gaussian mixture")
+                   help="CSF's prior: 'pretrained' (the shipped model), 'gaussian' (the "
+                        "ensemble's Gaussian) or 'exact' (the exact Gaussian mixture) (default "
+                        "%(default)s)")
     p.add_argument("--model", default=None,
                    help="a trained model's folder (experiments.train --export) instead of the "
-                        "shipped prior")
-    p.add_argument("--out", default=None, help="JSON file the rows are appended to")
-    p.add_argument("--render", default=None, help="print the table of this JSON file and stop")
+                        "shipped prior (default: the shipped prior)")
+    p.add_argument("--out", default=None,
+                   help="JSON file the rows are appended to (default: none)")
+    p.add_argument("--render", default=None, metavar="JSON",
+                   help="print the table of this JSON file and stop")
+    return p
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = build_parser()
     args = p.parse_args(argv)
+    if args.render is None and args.problem is None:
+        p.error("the problem is required (or --render JSON)")
+    if args.render is not None and not os.path.isfile(args.render):
+        p.error(f"argument --render: no file {args.render!r}")
+    if args.model is not None and not os.path.isdir(args.model):
+        p.error(f"argument --model: no folder {args.model!r}")
+    return args
+
+
+def main(argv=None):
+    args = parse_args(argv)
     if args.render:
         print(render(args.render))
         return
-    if args.problem is None:
-        p.error("the problem is required (or --render JSON)")
     rows = ablate(args.problem, args.runs, args.setting or [{}], prior=args.prior,
                   model_dir=args.model)
     if args.out:

@@ -1,10 +1,13 @@
 """Benchmark the CSF online step: csf_jax against the PyTorch port (eager and torch.compile).
 
-    python -m experiments.bench [--out DIR] [--quick] [--dims 1,10,20] [--particles 256,1000,4000]
-        [--guidance kalman|clipped|raw|normalized|none] [--steps L] [--repeats 3]
-        [--filter-steps 2] [--impls jax,torch_eager,torch_compile]
-        [--traj-runs 10] [--traj-steps 10] [--traj-dim 10] [--traj-particles 1000]
+    python -m experiments.bench [--out DIR] [--quick] [--dims D,D] [--particles N,N]
+        [--guidance kalman|clipped|raw|normalized|none] [--steps L] [--repeats R]
+        [--filter-steps K] [--impls jax,torch_eager,torch_compile]
+        [--traj-runs R] [--traj-steps K] [--traj-dim D] [--traj-particles N]
         [--torch-threads T] [--omp-wait-policy passive|active|unset] [--shards auto|S]
+
+It needs PyTorch (``pip install -e '.[bench]'``) unless only ``--impls jax`` runs with
+``--traj-runs 0``.
 
 For every state dimension d and ensemble size N it measures one filter step (propagate + encode +
 L reverse steps with the learned prior; random-init weights of the shipped models' network
@@ -15,8 +18,8 @@ is the double well, d > 1 the cubic sensor ``cubic<d>_indep``), with the sampler
 * ``kalman`` (default, ``CSFConfig()``'s sampler, its adaptive inflation included): the ancestral
   sampler with Kalman guidance, L = ``CSFConfig().reverse_steps`` = 20 levels (``--steps``
   defaults to it);
-* ``clipped`` (the old default; ``raw``, ``normalized``, ``none`` likewise): Euler-Maruyama with
-  DPS guidance, the paper's sampler; pass ``--steps 500`` for the paper's L.
+* ``clipped`` (``raw``, ``normalized``, ``none`` likewise): Euler-Maruyama with DPS guidance, the
+  paper's sampler; pass ``--steps 500`` for the paper's L.
 
 Implementations:
 
@@ -46,6 +49,8 @@ Writes ``bench.json`` (machine info and one row per measurement) and ``bench.md`
 from __future__ import annotations
 
 import argparse
+import importlib
+import importlib.util
 import json
 import os
 import platform
@@ -58,7 +63,14 @@ import time
 
 import numpy as np
 
-from experiments._cli import int_list, nonnegative_int, particle_count, positive_int
+from experiments._cli import (
+    int_list,
+    name_list,
+    nonnegative_int,
+    parser,
+    particle_count,
+    positive_int,
+)
 
 IMPLS = ("jax", "torch_eager", "torch_compile")
 TRAJ_IMPLS = ("jax_vmap", "jax_map", "torch_eager_loop")
@@ -341,8 +353,8 @@ def measure(impls, base_spec: dict, args, cache_root: str, repeats: int) -> list
 def machine_info(args) -> dict:
     """CPU model and flags, core count, library versions, load average, torch's OpenMP policy."""
     import jax
-    import torch
 
+    torch = importlib.import_module("torch") if needs_torch(args) else None
     with open("/proc/cpuinfo") as f:
         cpuinfo = f.read()
     match = re.search(r"^model name\s*:\s*(.+)$", cpuinfo, re.M)
@@ -352,7 +364,7 @@ def machine_info(args) -> dict:
         "platform": platform.platform(),
         "python": platform.python_version(), "jax": jax.__version__,
         "jaxlib": __import__("jaxlib").__version__, "flax": __import__("flax").__version__,
-        "torch": torch.__version__, "numpy": np.__version__,
+        "torch": None if torch is None else torch.__version__, "numpy": np.__version__,
         "avx512": sorted(f for f in (flags.group(1).split() if flags else []) if "avx512" in f),
         "loadavg_start": [round(v, 2) for v in os.getloadavg()],
         "omp_wait_policy_torch": args.omp_wait_policy,
@@ -430,55 +442,86 @@ def _checked(parse):
     return check
 
 
-def _parse_or_exit(parser, flag: str, parse, text: str):
-    """``parse(text)``, or argparse's one-line error for ``flag``."""
-    try:
-        return parse(text)
-    except argparse.ArgumentTypeError as e:
-        parser.error(f"argument {flag}: {e}")
+def _shards(text: str):
+    """``--shards``: ``"auto"`` or a positive int (an argparse ``type``)."""
+    return "auto" if text == "auto" else positive_int(text)
 
 
-def parse_args(argv=None):
+def needs_torch(args) -> bool:
+    """Whether the run has PyTorch workers: a torch implementation, or the trajectory rows (their
+    eager PyTorch loop)."""
+    return any(i.startswith("torch") for i in args.impls) or args.traj_runs > 0
+
+
+TORCH_MISSING = "PyTorch is not installed: pip install -e '.[bench]'"
+DESCRIPTION = ("Benchmark the CSF online step, csf_jax against its PyTorch port (eager and "
+               "torch.compile), per state dimension and ensemble size, and whole trajectories; "
+               "write bench.json and bench.md to --out.")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m experiments.bench``."""
     from csf_jax.filters.csf import CSFConfig
     from csf_jax.guidance import MODES, GuidanceConfig
 
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    p.add_argument("--out", default="out/bench")
+    p = parser("bench", DESCRIPTION)
+    p.add_argument("--out", default="out/bench",
+                   help="folder for bench.json and bench.md (default %(default)s)")
     p.add_argument("--quick", action="store_true",
-                   help="smoke test: d=10, N=256, 1 repeat of 1 filter step; trajectories: 10 "
-                        "runs x 2 filter steps at d=10, N=256 (L from --steps)")
-    p.add_argument("--dims", type=_checked(int_list(1)), default="1,10,20")
-    p.add_argument("--particles", type=_checked(int_list(2)), default="256,1000,4000")
+                   help="smoke test: d=10, N=256, 1 repeat of 1 filter step; trajectories: "
+                        "--traj-runs runs x 2 filter steps at d=10, N=256 (L from --steps)")
+    p.add_argument("--dims", type=_checked(int_list(1)), default="1,10,20", metavar="D,D,...",
+                   help="comma-separated state dimensions d (default %(default)s)")
+    p.add_argument("--particles", type=_checked(int_list(2)), default="256,1000,4000",
+                   metavar="N,N,...",
+                   help="comma-separated ensemble sizes N, each at least 2 (default %(default)s)")
     p.add_argument("--guidance", choices=MODES, default=GuidanceConfig().mode,
-                   help="the sampler: 'kalman' (default: ancestral with Kalman guidance) or a "
-                        "DPS mode with Euler-Maruyama (the old default: --guidance clipped "
-                        "--steps 500)")
+                   help="the sampler: 'kalman' (ancestral with Kalman guidance) or a DPS mode "
+                        "with Euler-Maruyama (the paper's: --guidance clipped --steps 500); "
+                        "choices %(choices)s (default %(default)s)")
     p.add_argument("--steps", type=particle_count, default=CSFConfig().reverse_steps,
-                   help="reverse steps L (default: CSFConfig().reverse_steps)")
-    p.add_argument("--repeats", type=positive_int, default=3)
+                   help="reverse steps L, at least 2 (default %(default)s, "
+                        "CSFConfig().reverse_steps)")
+    p.add_argument("--repeats", type=positive_int, default=3,
+                   help="timed runs per implementation (default %(default)s)")
     p.add_argument("--filter-steps", type=positive_int, default=2,
-                   help="filter steps per timed run")
-    p.add_argument("--impls", default=",".join(IMPLS))
-    p.add_argument("--traj-runs", type=nonnegative_int, default=10, help="0: no trajectory rows")
-    p.add_argument("--traj-steps", type=positive_int, default=10, help="filter steps per run (K)")
-    p.add_argument("--traj-dim", type=positive_int, default=10)
-    p.add_argument("--traj-particles", type=particle_count, default=1000)
-    p.add_argument("--traj-repeats", type=positive_int, default=None, help="default: --repeats")
+                   help="filter steps per timed run (default %(default)s)")
+    p.add_argument("--impls", type=name_list(IMPLS, "implementation"), default=list(IMPLS),
+                   metavar="I,I,...",
+                   help="comma-separated implementations from: " + ", ".join(IMPLS)
+                   + " (default: all)")
+    p.add_argument("--traj-runs", type=nonnegative_int, default=10,
+                   help="runs of the whole-trajectory rows; 0: no trajectory rows (default "
+                        "%(default)s)")
+    p.add_argument("--traj-steps", type=positive_int, default=10,
+                   help="filter steps per trajectory run, K (default %(default)s)")
+    p.add_argument("--traj-dim", type=positive_int, default=10,
+                   help="state dimension of the trajectory rows (default %(default)s)")
+    p.add_argument("--traj-particles", type=particle_count, default=1000,
+                   help="ensemble size of the trajectory rows (default %(default)s)")
+    p.add_argument("--traj-repeats", type=positive_int, default=None,
+                   help="timed runs of the trajectory rows (default: --repeats)")
     p.add_argument("--torch-threads", type=positive_int, default=None,
-                   help="default: torch's own")
+                   help="torch's intra-op threads (default: torch's own)")
     p.add_argument("--omp-wait-policy", choices=("passive", "active", "unset"), default="unset",
                    help="OMP_WAIT_POLICY of the torch workers ('unset': leave the environment "
-                        "alone). With other processes on the cores, OpenMP's spin-waiting stalls "
-                        "torch's threads (measured: 207 ms instead of 3.4 ms per reverse step at "
-                        "N=1000, load 5 on 2 cores)")
-    p.add_argument("--shards", default="auto",
+                        "alone); with other processes on the cores, OpenMP's spin-waiting can "
+                        "stall torch's threads (default %(default)s)")
+    p.add_argument("--shards", type=_shards, default="auto",
                    help="XLA host devices (one per core) the JAX workers split the particles over "
-                        "on a CPU: 'auto' = the number of cores, 1 = off")
+                        "on a CPU: 'auto' = the number of cores, 1 = off (default %(default)s)")
     p.add_argument("--worker", help=argparse.SUPPRESS)
+    return p
+
+
+def parse_args(argv=None):
+    p = build_parser()
     args = p.parse_args(argv)
     if not args.worker:
-        args.shards = ((os.cpu_count() or 1) if args.shards == "auto" else
-                       _parse_or_exit(p, "--shards", positive_int, args.shards))
+        if args.shards == "auto":
+            args.shards = os.cpu_count() or 1
+        if needs_torch(args) and importlib.util.find_spec("torch") is None:
+            p.error(TORCH_MISSING)
     if args.quick:
         args.dims, args.particles, args.repeats = "10", "256", 1
         args.filter_steps, args.traj_steps, args.traj_particles, args.traj_dim = 1, 2, 256, 10
@@ -495,7 +538,7 @@ def main(argv=None):
     import csf_jax
 
     os.makedirs(args.out, exist_ok=True)
-    impls = [i for i in args.impls.split(",") if i]
+    impls = args.impls
     info = machine_info(args)
     print(json.dumps(info, indent=1), flush=True)
     rows = []

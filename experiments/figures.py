@@ -1,10 +1,14 @@
-"""PNG figures of the main job, like the paper's (needs matplotlib: ``pip install -e '.[plots]'``).
+"""PNG figures of the main job, like the paper's (they need matplotlib: ``pip install matplotlib``).
 
 * ``estimates.png``: filtered means of every method against the truth over time, run 0, for chosen
   coordinates (paper Figs. 2c/d, 4, 5); dotted lines mark the shocks.
 * ``rmse_over_time.png``: RMSE over the runs at every filter step, per method (paper Fig. 6).
-* ``prior.png`` (1-D problems): the propagated prior ensemble at one step against samples of the
-  CSF model's prior for it (the reverse SDE without guidance or prior inflation; paper Fig. 2b).
+* ``prior.png`` (1-D problems): the propagated prior ensemble at one step against samples of CSF's
+  prior for it, drawn by the filter's own sampler without the observation and without prior
+  inflation (paper Fig. 2b).
+
+Every method has its own colour, line style and marker; the truth is a thin dashed black line
+drawn beneath them; legends sit outside the axes.
 """
 
 from __future__ import annotations
@@ -19,15 +23,23 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from csf_jax.filters.csf import (
-    _prior_for,  # noqa: E402
-    posterior_sample,  # noqa: E402
+from csf_jax.filters.csf import (  # noqa: E402
+    _prior_for,
+    ancestral_sample,
+    posterior_sample,
+    sampler_start,
+    uses_kalman,
 )
-from csf_jax.sde import marginal_std  # noqa: E402
 from csf_jax.ssm import propagate  # noqa: E402
 
-COLORS = {"csf": "tab:red", "sf": "tab:blue", "enkf": "tab:green", "pf": "tab:purple",
-          "reference": "black", "csf_gaussian": "tab:orange"}
+STYLES = {"csf": dict(color="tab:red", ls="-", marker="o"),
+          "csf_gaussian": dict(color="tab:orange", ls="--", marker="s"),
+          "sf": dict(color="tab:blue", ls="-.", marker="^"),
+          "enkf": dict(color="tab:green", ls=(0, (5, 1.5)), marker="v"),
+          "pf": dict(color="tab:purple", ls=":", marker="D"),
+          "reference": dict(color="tab:cyan", ls="-", marker="x")}
+TRUTH = dict(color="black", ls="--", lw=0.9, zorder=1)
+COLORS = {m: s["color"] for m, s in STYLES.items()}
 LABELS = {"csf": "CSF", "csf_gaussian": "CSF, Gaussian prior", "sf": "SF", "enkf": "EnKF",
           "pf": "PF", "reference": "reference"}
 
@@ -44,22 +56,34 @@ def plotted_dims(dim: int) -> list[int]:
 
 def _shock_lines(ax, shocks) -> None:
     for k in np.nonzero(shocks)[0]:
-        ax.axvline(k + 1, color="gray", ls=":", lw=1)
+        ax.axvline(k + 1, color="gray", ls=":", lw=1, zorder=0)
+
+
+def _style(method: str, index: int, points: int) -> dict:
+    """Line keywords of the ``index``-th method: its colour, line style and marker, the markers
+    spaced about a twelfth of the steps apart and offset per method so that they do not sit on
+    each other; the first method (CSF) drawn on top."""
+    every = max(1, points // 12)
+    return dict(STYLES[method], lw=1.3, ms=4, markevery=(index * every // 6 % every, every),
+                zorder=20 - index)
 
 
 def estimates(out: str, name: str, truth, shocks, means: dict, run: int = 0) -> str:
     """Truth ``(R, K+1, d)`` against ``means[method] (R_m, K, d)`` for ``run``; returns the path."""
     dims = plotted_dims(truth.shape[-1])
-    fig, axes = plt.subplots(len(dims), 1, figsize=(8, 2.4 * len(dims)), sharex=True, squeeze=False)
+    fig, axes = plt.subplots(len(dims), 1, figsize=(9, 2.4 * len(dims)), sharex=True, squeeze=False,
+                             layout="constrained")
     steps = np.arange(truth.shape[1])
     for ax, i in zip(axes[:, 0], dims):
-        ax.plot(steps, truth[run, :, i], color="black", lw=2, label="truth")
-        for m, mean in means.items():
+        ax.plot(steps, truth[run, :, i], label="truth", **TRUTH)
+        for j, (m, mean) in enumerate(means.items()):
             if mean.shape[0] > run:
-                ax.plot(steps[1:], mean[run, :, i], color=COLORS[m], lw=1.2, label=LABELS[m])
+                ax.plot(steps[1:], mean[run, :, i], label=LABELS[m],
+                        **_style(m, j, mean.shape[1]))
         _shock_lines(ax, shocks[run])
         ax.set_ylabel(f"x{i + 1}")
-    axes[0, 0].legend(ncol=5, fontsize=8, loc="best", framealpha=0.6)
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside right upper", fontsize=8)
     axes[0, 0].set_title(f"{name}: estimates against the truth (run {run}; dotted: shocks)")
     axes[-1, 0].set_xlabel("filter step k")
     return _save(fig, out, "estimates.png")
@@ -67,23 +91,32 @@ def estimates(out: str, name: str, truth, shocks, means: dict, run: int = 0) -> 
 
 def rmse_over_time(out: str, name: str, truth, shocks, means: dict) -> str:
     """RMSE over runs at each step, ``sqrt(mean_r |mean - truth|^2)``, per method."""
-    fig, ax = plt.subplots(figsize=(8, 3.2))
-    for m, mean in means.items():
+    fig, ax = plt.subplots(figsize=(9, 3.4), layout="constrained")
+    for j, (m, mean) in enumerate(means.items()):
         err = np.sum((mean - truth[: mean.shape[0], 1:]) ** 2, axis=-1)
-        ax.plot(np.arange(1, err.shape[1] + 1), np.sqrt(err.mean(axis=0)), color=COLORS[m],
-                label=f"{LABELS[m]} ({mean.shape[0]} runs)")
+        ax.plot(np.arange(1, err.shape[1] + 1), np.sqrt(err.mean(axis=0)),
+                label=f"{LABELS[m]} ({mean.shape[0]} runs)", **_style(m, j, err.shape[1]))
     ax.set_yscale("log")
     ax.set_xlabel("filter step k")
     ax.set_ylabel("RMSE over runs")
     ax.set_title(f"{name}: RMSE over time (every run has its own shock times)")
-    ax.legend(fontsize=8)
+    fig.legend(loc="outside right upper", fontsize=8)
     return _save(fig, out, "rmse_over_time.png")
 
 
-def prior_vs_model(out: str, name: str, model, pretrained, config, ensemble0, key, shocks) -> str:
-    """1-D: CSF on one run (``key``: its simulation key, ``shocks`` its shock flags) up to the first
-    shock (else the middle), then the propagated prior ensemble against samples of the model's
-    prior conditioned on it."""
+def prior_data(model, pretrained, config, ensemble0, key, shocks, prior=None) -> dict:
+    """What ``prior.png`` plots, 1-D: CSF on one run (``key``: its simulation key, ``shocks`` its
+    shock flags) up to the first shock (else the middle), then at that filter step the propagated
+    prior ensemble and samples of CSF's prior for it.
+
+    The samples come from the filter's own sampler (``config``'s: ancestral with Kalman guidance,
+    or Euler-Maruyama for a DPS mode) started as in the filter, with the observation switched off
+    (guide 0) and no prior inflation: what CSF's prior alone draws at that step. ``prior``: CSF's
+    ``PriorScore`` when not the pretrained or exact one (``--prior gaussian``).
+
+    Returns ``{"step": k + 1 (1-based filter step), "prior_ensemble": (N,), "csf_samples": (N,),
+    "bins": the histogram edges, "prior_name": str}``; the bins span both sample sets.
+    """
     import csf_jax
 
     K = shocks.shape[0]
@@ -93,32 +126,50 @@ def prior_vs_model(out: str, name: str, model, pretrained, config, ensemble0, ke
     params = None if pretrained is None else pretrained.params
     network = None if pretrained is None else pretrained.network
     _, obs = csf_jax.simulate(model, key)
-    prior = _prior_for(params, None, network, config)
+    source = _prior_for(params, prior, network, config)
     result = csf_jax.filter(params, obs[:k], ensemble0, problem=model, key=k_filt, config=config,
-                            network=network, return_ensembles=True)
+                            network=network, prior=prior, return_ensembles=True)
     post = result.ensembles[-1]
     prior_ens = propagate(model, k_prop, post)
     centers = jax.vmap(model.drift)(post)
-    context = prior.condition(params, centers, prior_ens, model.process_std)
-    x_init = marginal_std(1.0, config.sigma_max) * jax.random.normal(k_init, prior_ens.shape)
-    # the model's own prior: no inflation, no guidance
-    generated = posterior_sample(params, prior, context, lambda x0: 0.0, x_init, k_rev,
-                                 dataclasses.replace(config, prior_inflation=0.0), 0.0)
-    fig, ax = plt.subplots(figsize=(6, 3.2))
-    a, g = np.asarray(prior_ens[:, 0]), np.asarray(generated[:, 0])
+    context = source.condition(params, centers, prior_ens, model.process_std)
+    own = dataclasses.replace(config, prior_inflation=0.0, adaptive_inflation=False)
+    x_init, start = sampler_start(own, prior_ens, k_init)
+    if uses_kalman(own):
+        samples = ancestral_sample(params, source, context, model, obs[k], x_init, start, k_rev,
+                                   own, 0.0)
+    else:
+        samples = posterior_sample(params, source, context, lambda x0: 0.0, x_init, k_rev, own,
+                                   0.0, start.tau)
+    a, g = np.asarray(prior_ens[:, 0]), np.asarray(samples[:, 0])
     bins = np.linspace(min(a.min(), g.min()), max(a.max(), g.max()), 50)
-    ax.hist(a, bins=bins, density=True, alpha=0.5, color="black", label="prior ensemble")
-    ax.hist(g, bins=bins, density=True, histtype="step", lw=2, color=COLORS["csf"],
-            label=f"CSF model ({prior.name} prior)")
-    ax.set_title(f"{name}: prior at filter step {k + 1} of run 0, from a CSF run on its data")
+    return {"step": k + 1, "prior_ensemble": a, "csf_samples": g, "bins": bins,
+            "prior_name": source.name}
+
+
+def prior_figure(out: str, name: str, data: dict) -> str:
+    """Plot ``prior_data``'s output to ``prior.png``; returns the path."""
+    fig, ax = plt.subplots(figsize=(7.5, 3.4), layout="constrained")
+    ax.hist(data["prior_ensemble"], bins=data["bins"], density=True, color="0.6", alpha=0.6,
+            label="prior ensemble")
+    ax.hist(data["csf_samples"], bins=data["bins"], density=True, histtype="step", lw=1.8,
+            color=COLORS["csf"], label=f"CSF samples\n({data['prior_name']} prior)")
+    ax.set_title(f"{name}: prior at filter step {data['step']} of run 0, from a CSF run on its data")
     ax.set_xlabel("x")
-    ax.legend(fontsize=8)
+    ax.set_ylabel("density")
+    fig.legend(loc="outside right upper", fontsize=8)
     return _save(fig, out, "prior.png")
+
+
+def prior_vs_model(out: str, name: str, model, pretrained, config, ensemble0, key, shocks,
+                   prior=None) -> str:
+    """``prior.png`` of one run (``prior_data``, then ``prior_figure``); returns the path."""
+    data = prior_data(model, pretrained, config, ensemble0, key, shocks, prior=prior)
+    return prior_figure(out, name, data)
 
 
 def _save(fig, out: str, filename: str) -> str:
     path = os.path.join(out, filename)
-    fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

@@ -11,9 +11,9 @@ if missing) and prints one line per model: how much the learned correction gaine
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import os
-import sys
 
 import jax
 
@@ -21,6 +21,9 @@ from csf_jax import networks
 from csf_jax.pretrained import DATASETS, NETWORK, TRAIN, load_pretrained
 from csf_jax.training import generate, load
 from csf_jax.training.train import eval_loss, make_batch
+from experiments._cli import one_of, parser
+
+GAUSSIAN_BASE = tuple(n for n in DATASETS if NETWORK[n].base == "gaussian")
 
 
 def losses(name: str) -> tuple[float, float]:
@@ -38,13 +41,22 @@ def losses(name: str) -> tuple[float, float]:
     return ev(untrained), ev(load_pretrained(name).params)
 
 
+DESCRIPTION = ("Print, per shipped Gaussian-base model, its validation loss against the "
+               "ensemble's Gaussian alone (the untrained network), on the datasets under "
+               "runs/pretrained/<name>/data (generated there if missing).")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m experiments.gaussian_loss``."""
+    p = parser("gaussian_loss", DESCRIPTION)
+    p.add_argument("names", nargs="*", type=one_of(GAUSSIAN_BASE, "Gaussian-base shipped model"),
+                   metavar="NAME",
+                   help=f"models, from: {', '.join(GAUSSIAN_BASE)} (default: all)")
+    return p
+
+
 def main(argv=None):
-    names = (argv if argv is not None else sys.argv[1:]) or list(DATASETS)
-    for name in names:
-        if name not in DATASETS:
-            raise SystemExit(f"no shipped model for {name!r}; known: {', '.join(DATASETS)}")
-        if NETWORK[name].base != "gaussian":
-            raise SystemExit(f"{name}: the shipped model has no Gaussian base")
+    names = build_parser().parse_args(argv).names or list(GAUSSIAN_BASE)
     print("| model | Gaussian (untrained) | trained | trained / Gaussian |")
     print("|---|---|---|---|")
     for name in names:

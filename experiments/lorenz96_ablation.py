@@ -1,7 +1,7 @@
 """Why the local CSF's default sampler is the deterministic flow: the exact limits of its two
 samplers on Lorenz-96 at d = 40, computed with dense matrices.
 
-    python -m experiments.lorenz96_ablation [--runs 3] [--steps 1000] [--out docs/lorenz96_ablation.md]
+    python -m experiments.lorenz96_ablation [--runs R] [--steps K] [--out docs/lorenz96_ablation.md]
 
 With the GMRF prior of ``csf_jax.local_prior`` (``local_statistics``, ridge 0.01) and the identity
 sensor with ``R = I``, the posterior is ``N(m_a, P_a)``, ``P_a = (Lambda + I)^{-1}``. With
@@ -14,7 +14,6 @@ over the regressions' half-width b, the inflation and the float width. Cached un
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 
@@ -24,7 +23,7 @@ import jax.numpy as jnp
 from csf_jax import problems
 from csf_jax.local_prior import dense_precision, local_statistics
 from experiments import lorenz96 as baselines
-from experiments._cli import write_page
+from experiments._cli import parser, write_page
 from experiments.lorenz96_csf import _cached
 from experiments.run import machine
 
@@ -82,13 +81,29 @@ def cell(mode: str, b: int, dtype: str, inflation: float, runs: int, steps: int)
     return rmse
 
 
-def main(argv=None):
-    p = argparse.ArgumentParser(prog="python -m experiments.lorenz96_ablation", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--runs", type=int, default=3)
-    p.add_argument("--steps", type=int, default=1000)
-    p.add_argument("--out", default=os.path.join("docs", "lorenz96_ablation.md"))
+DESCRIPTION = ("The exact limits of the local CSF's two samplers on Lorenz-96 (fresh posterior "
+               "draws against the square-root transport), over half-width, inflation and float "
+               "width; cache each cell under runs/lorenz96_ablation and write the table to --out.")
+
+
+def build_parser():
+    """The command line of ``python -m experiments.lorenz96_ablation``."""
+    p = parser("lorenz96_ablation", DESCRIPTION)
+    baselines.add_run_arguments(p)
+    p.add_argument("--out", default=os.path.join("docs", "lorenz96_ablation.md"),
+                   help="markdown page to write (default %(default)s)")
+    return p
+
+
+def parse_args(argv=None):
+    p = build_parser()
     args = p.parse_args(argv)
+    baselines.check_memory(p, args.runs, args.steps)
+    return args
+
+
+def main(argv=None):
+    args = parse_args(argv)
     jax.config.update("jax_enable_x64", True)
     lines = ["# Lorenz-96: the exact limits of the local CSF's samplers", "",
              f"Made by `python -m experiments.lorenz96_ablation --runs {args.runs} --steps "

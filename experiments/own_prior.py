@@ -1,6 +1,6 @@
 """``train_prior``'s defaults against the shipped priors, on the table's own runs.
 
-    python -m experiments.own_prior [double_well cauchy cubic10_indep cubic10_corr] [--runs 10]
+    python -m experiments.own_prior [double_well cauchy cubic10_indep cubic10_corr] [--runs R]
 
 Each built-in problem is renamed (``<name>_own``) so that it is a model the package does not know,
 a prior is trained for it with ``csf_jax.train_prior(model, jax.random.key(0))`` and nothing else
@@ -12,7 +12,6 @@ Beside it: the table's PF, EnKF and CSF (shipped prior) RMSE from ``results/<nam
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
@@ -23,7 +22,7 @@ import numpy as np
 
 import csf_jax
 from csf_jax import problems
-from experiments._cli import write_page
+from experiments._cli import one_of, parser, positive_int, write_page
 from experiments.run import _errors, csf_config, machine, simulate_runs, summarize
 
 DEFAULT = ("double_well", "cauchy", "cubic10_indep", "cubic10_corr")
@@ -60,13 +59,32 @@ def _fmt(v):
     return "-" if v is None else f"{v:.4g}"
 
 
+DESCRIPTION = ("Train a prior with csf_jax.train_prior's defaults for each named problem (as a "
+               "model the package does not know; under runs/own_prior), filter the table's runs "
+               "with it and write the comparison with the shipped prior to --out.")
+
+
+def build_parser():
+    """The command line of ``python -m experiments.own_prior``."""
+    p = parser("own_prior", DESCRIPTION)
+    p.add_argument("problems", nargs="*", type=one_of(problems.NAMES, "problem"), metavar="PROBLEM",
+                   help=f"problems from: {', '.join(problems.NAMES)} (default: "
+                        f"{' '.join(DEFAULT)})")
+    p.add_argument("--runs", type=positive_int, default=10,
+                   help="the table's runs to filter (default %(default)s)")
+    p.add_argument("--out", default=os.path.join("docs", "own_prior.md"),
+                   help="markdown page to write (default %(default)s)")
+    return p
+
+
+def parse_args(argv=None):
+    args = build_parser().parse_args(argv)
+    args.problems = args.problems or list(DEFAULT)
+    return args
+
+
 def main(argv=None):
-    p = argparse.ArgumentParser(prog="python -m experiments.own_prior", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("problems", nargs="*", default=list(DEFAULT))
-    p.add_argument("--runs", type=int, default=10)
-    p.add_argument("--out", default=os.path.join("docs", "own_prior.md"))
-    args = p.parse_args(argv)
+    args = parse_args(argv)
     rows = []
     for name in args.problems:
         rows.append(one(name, args.runs))

@@ -38,7 +38,14 @@ import numpy as np
 
 from csf_jax import CSFConfig, GuidanceConfig, StateSpaceModel, cauchy_noise, gaussian_noise
 from csf_jax.filters.csf import csf_filter
-from experiments._cli import int_list, name_list, nonnegative_int, particle_count, positive_int
+from experiments._cli import (
+    int_list,
+    name_list,
+    nonnegative_int,
+    parser,
+    particle_count,
+    positive_int,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -248,20 +255,37 @@ def write(path: str, command: str, args, rows) -> None:
                 f"are kept, not rerun).\n\n{table(rows)}\n")
 
 
+DESCRIPTION = ("Measure one CSF filter step against the exact posterior (quadrature) per case "
+               "and sampler: mean error ratio, bias, spread ratio and 90% coverage; write the "
+               "JSON record to --out and its markdown table beside it.")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m experiments.posterior_quality``."""
+    parser_ = parser("posterior_quality", DESCRIPTION)
+    parser_.add_argument("--out", default="docs/posterior/posterior_quality.json",
+                         help="JSON record; the markdown table goes beside it (.md). Rows already "
+                              "in it (same trials, particles, seed) are kept, not rerun (default "
+                              "%(default)s)")
+    parser_.add_argument("--trials", type=positive_int, default=16,
+                         help="trials per case (default %(default)s)")
+    parser_.add_argument("--particles", type=particle_count, default=1000,
+                         help="ensemble size N, at least 2 (default %(default)s)")
+    parser_.add_argument("--seed", type=nonnegative_int, default=0,
+                         help="seed of the data and the sampling (default %(default)s)")
+    parser_.add_argument("--samplers", type=sampler_plan,
+                         default="kalman:10,20,50;dps clipped:50,500;dps raw:500",
+                         help="'name:steps,steps;name:steps' with names from: "
+                              + ", ".join(SAMPLERS) + " (default '%(default)s')")
+    parser_.add_argument("--cases", type=name_list([c.name for c in CASES], "case"),
+                         default=[c.name for c in CASES], metavar="CASE,CASE,...",
+                         help="comma-separated case names from: "
+                              + ", ".join(c.name for c in CASES) + " (default: all)")
+    return parser_
+
+
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", default="docs/posterior/posterior_quality.json",
-                        help="JSON record; the markdown table goes beside it (.md). Rows already "
-                             "in it (same trials, particles, seed) are kept, not rerun.")
-    parser.add_argument("--trials", type=positive_int, default=16)
-    parser.add_argument("--particles", type=particle_count, default=1000)
-    parser.add_argument("--seed", type=nonnegative_int, default=0)
-    parser.add_argument("--samplers", type=sampler_plan,
-                        default="kalman:10,20,50;dps clipped:50,500;dps raw:500",
-                        help="'name:steps,steps;name:steps' (names: " + ", ".join(SAMPLERS) + ")")
-    parser.add_argument("--cases", type=name_list([c.name for c in CASES], "case"),
-                        default=[c.name for c in CASES], help="comma-separated case names")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     argv = sys.argv[1:] if argv is None else argv
     command = shlex.join(["python", "-m", "experiments.posterior_quality", *argv])
     done = {}

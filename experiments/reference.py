@@ -6,7 +6,7 @@
 For each problem, runs ``csf_jax.filters.reference`` on the first ``--runs`` runs of the table
 (seed 0, ``experiments.run.simulate_runs``) at each particle count, with the shock hypothesis on,
 and once without it (a plain per-coordinate particle filter, the first count), and prints RMSE per
-setting. The reference row of the table is near-exact where more particles no longer change it:
+setting. The reference row of the table is near-exact where more particles do not change it:
 the sampling error of the per-coordinate filter is then below the table's precision. Rows are
 appended to ``--out`` (JSON) with the machine.
 """
@@ -25,7 +25,7 @@ import numpy as np
 from csf_jax import problems  # noqa: E402
 from csf_jax.filters.reference import ReferenceConfig  # noqa: E402
 from experiments import run as run_mod  # first: it sets XLA's host devices before jax loads
-from experiments._cli import name_list, positive_int  # noqa: E402
+from experiments._cli import int_list, name_list, parser, positive_int  # noqa: E402
 
 
 def convergence(name: str, runs: int, counts, seed: int = 0):
@@ -53,22 +53,30 @@ def convergence(name: str, runs: int, counts, seed: int = 0):
     return rows
 
 
-def main(argv=None):
-    p = argparse.ArgumentParser(prog="python -m experiments.reference", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+DESCRIPTION = ("Run the reference filter on the table's first runs at each particle count (and "
+               "once without the shock hypothesis) and print the RMSE per setting; --out appends "
+               "the rows to a JSON file.")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m experiments.reference``."""
+    p = parser("reference", DESCRIPTION)
     p.add_argument("--problems", type=name_list(problems.NAMES, "problem"),
-                   default=list(problems.NAMES))
-    p.add_argument("--runs", type=positive_int, default=3)
-    p.add_argument("--particles", default="20000,80000",
-                   help="comma-separated particle counts per coordinate")
-    p.add_argument("--out", default=None, help="JSON file the rows are appended to")
-    args = p.parse_args(argv)
-    try:
-        counts = [int(c) for c in args.particles.split(",")]
-        if not counts or min(counts) < 2:
-            raise ValueError
-    except ValueError:
-        p.error(f"argument --particles: expected comma-separated ints >= 2, got {args.particles!r}")
+                   default=list(problems.NAMES), metavar="P,P,...",
+                   help=f"comma-separated problems from: {', '.join(problems.NAMES)} (default: "
+                        f"all)")
+    p.add_argument("--runs", type=positive_int, default=3,
+                   help="the table's first runs to filter (default %(default)s)")
+    p.add_argument("--particles", type=int_list(2), default=(20000, 80000), metavar="M,M,...",
+                   help="comma-separated particle counts per coordinate, each at least 2 "
+                        "(default 20000,80000)")
+    p.add_argument("--out", default=None, help="JSON file the rows are appended to (default: none)")
+    return p
+
+
+def main(argv=None):
+    args = build_parser().parse_args(argv)
+    counts = list(args.particles)
     print("| problem | particles per coordinate | shocks modelled | runs | RMSE | per run | s (with "
           "compile) |\n|---|---|---|---|---|---|---|", flush=True)
     rows = []

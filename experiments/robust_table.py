@@ -11,24 +11,31 @@ tuned on".
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
-import sys
 
 import jax
 import numpy as np
 
 import csf_jax
+from experiments._cli import parser
 from experiments.run import simulate_runs
 
 DEFAULT = ("triple_well=10", "double_well=5", "cauchy=3", "cubic10_corr=3")
+CACHED_RUNS = 10  # runs of each problem in results/<problem>/results.json
 
 
 def parse(arg: str) -> tuple[str, int]:
+    """``"problem=R"`` -> ``(problem, R)`` (an argparse ``type``)."""
     name, _, runs = arg.partition("=")
     if name not in csf_jax.problems.NAMES or not runs.isdigit() or int(runs) < 1:
-        raise SystemExit(f"robust_table: expected problem=R with a table problem "
-                         f"({', '.join(csf_jax.problems.NAMES)}) and R >= 1, got {arg!r}")
+        raise argparse.ArgumentTypeError(f"expected problem=R with a table problem "
+                                         f"({', '.join(csf_jax.problems.NAMES)}) and R >= 1, "
+                                         f"got {arg!r}")
+    if int(runs) > CACHED_RUNS:
+        raise argparse.ArgumentTypeError(f"R must be <= {CACHED_RUNS}, the table's cached runs, "
+                                         f"got {arg!r}")
     return name, int(runs)
 
 
@@ -53,12 +60,25 @@ def row(name: str, runs: int) -> str:
             f"{aggregate(cached['csf'][:runs]) / ref:.2f} |")
 
 
+DESCRIPTION = ("Filter the first R runs of the table's problems with csf_jax.ROBUST and print "
+               "its RMSE beside the cached CSF, CSF-G and reference RMSEs of the same runs.")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m experiments.robust_table``."""
+    p = parser("robust_table", DESCRIPTION)
+    p.add_argument("cases", nargs="*", type=parse, metavar="PROBLEM=R",
+                   help=f"a table problem and its first R runs, R <= {CACHED_RUNS} (default: "
+                        f"{' '.join(DEFAULT)})")
+    return p
+
+
 def main(argv=None):
-    args = (argv if argv is not None else sys.argv[1:]) or list(DEFAULT)
+    cases = build_parser().parse_args(argv).cases or [parse(a) for a in DEFAULT]
     print("| problem | runs | ROBUST | CSF (defaults, cached) | CSF-G (cached) | reference | "
           "ROBUST / ref. | CSF / ref. |")
     print("|---|---|---|---|---|---|---|---|")
-    for name, runs in map(parse, args):
+    for name, runs in cases:
         print(row(name, runs), flush=True)
 
 

@@ -1,8 +1,8 @@
 """The main job: run CSF, SF, EnKF and PF, and the near-exact reference, on one of the paper's
 problems (paper Sec. 3).
 
-    python -m experiments.run double_well [--methods csf,sf,enkf,pf,reference] [--runs 10] [--particles 1000]
-        [--steps 50] [--guidance kalman] [--seed 0] [--out DIR] [--batch B]
+    python -m experiments.run double_well [--methods csf,sf,enkf,pf,reference] [--runs R]
+        [--particles N] [--steps L] [--guidance kalman] [--seed 0] [--out DIR] [--batch B]
         [--prior pretrained|exact|gaussian] [--quick]
 
 Simulates ``--runs`` independent truth/observation trajectories (run i uses the key
@@ -19,15 +19,15 @@ The reference (``csf_jax.filters.reference``: 20000 particles per coordinate, sh
 started from the model's initial law) is the best achievable on these problems; the table's
 "RMSE / reference" column is each method's RMSE over its RMSE on the same runs.
 
-``--out DIR`` writes ``results.json`` and PNG figures (matplotlib: ``pip install -e '.[plots]'``), and
-caches every finished run under ``DIR/cache``: an interrupted job, run again with the same
-arguments, resumes at the first unfinished run. Runs are batched, ``--batch`` at a time (default:
-all runs for EnKF/PF and on GPU; on CPU one run per core for CSF/SF). On a CPU a vmapped batch runs
-no faster per run than one run, so the job asks XLA for one host device per core
-(``--xla_force_host_platform_device_count``, unless ``XLA_FLAGS`` already sets it or jax was
-imported first) and spreads a batch's runs over them with ``shard_map``. Runs are independent, so
-only the wall-clock time changes: on the 2-core dev machine 1.07x faster for CSF (XLA already
-keeps both cores busy on one run), 1.39x for SF.
+``--out DIR`` writes ``results.json`` and PNG figures (``experiments.figures``; they need
+matplotlib: ``pip install matplotlib``), and caches every finished run under ``DIR/cache``: an
+interrupted job, run again with the same arguments, resumes at the first unfinished run. Runs are
+batched, ``--batch`` at a time (default: all runs for EnKF/PF and on GPU; on CPU one run per core
+for CSF/SF). On a CPU a vmapped batch runs no faster per run than one run, so the job asks XLA for
+one host device per core (``--xla_force_host_platform_device_count``, unless ``XLA_FLAGS`` already
+sets it or jax was imported first) and spreads a batch's runs over them with ``shard_map``. Runs
+are independent, so only the wall-clock time changes: on the 2-core dev machine 1.07x faster for
+CSF (XLA already keeps both cores busy on one run), 1.39x for SF.
 
 SF's online training makes it the slow column on a CPU: there the default is SF on the first run,
 its training batch split over the cores (``csf_jax.score_filter(..., shards=)``; the page and the
@@ -69,14 +69,25 @@ from csf_jax.filters.reference import ReferenceConfig, reference_filter  # noqa:
 from csf_jax.guidance import MODES  # noqa: E402
 from csf_jax.pretrained import load_pretrained  # noqa: E402
 from csf_jax.prior import gaussian_prior  # noqa: E402
-from experiments._cli import name_list, nonnegative_int, particle_count, positive_int  # noqa: E402
+from experiments._cli import (  # noqa: E402
+    name_list,
+    nonnegative_int,
+    parser,
+    particle_count,
+    positive_int,
+)
 
 METHODS = ("csf", "csf_gaussian", "sf", "enkf", "pf", "reference")
 LABELS = {"csf": "CSF", "csf_gaussian": "CSF-G", "sf": "SF", "enkf": "EnKF", "pf": "PF",
           "reference": "Ref."}
+METHOD_HELP = {"csf": "CSF with the --prior prior", "csf_gaussian": "CSF-G: CSF's sampler with the "
+               "ensemble's own Gaussian as the prior", "sf": "the score filter, trained online",
+               "enkf": "ensemble Kalman filter", "pf": "bootstrap particle filter",
+               "reference": "the near-exact per-coordinate reference filter"}
+RUNS, PARTICLES = 10, 1000  # the table's setting
 # csf_gaussian: CSF's sampler with the ensemble's own Gaussian as the prior (csf_jax.gaussian_prior,
-# no network, all N particles for the moments): the worst case issue 11 asks of a learned prior. It
-# runs with CSF's config of the column, so that CSF against CSF-G isolates the learned correction.
+# no network, all N particles for the moments): the baseline a learned prior has to beat. It runs
+# with CSF's config of the column, so that CSF against CSF-G isolates the learned correction.
 # The near-exact reference filter (csf_jax.filters.reference) of the tables: M particles per
 # coordinate, shocks modelled, started from the model's initial law (not the N-particle ensemble).
 REFERENCE = ReferenceConfig()
@@ -91,9 +102,9 @@ CPU_SF_RUNS = 1  # the CLI's default SF runs on a CPU (module doc)
 # too narrow (docs/ablation.md). Student-t proposals with one degree of freedom, the noise's own
 # tail, and 32 of them per particle (runs 0-2: 0.264 against 0.303 with 8 Gaussian ones).
 CSF_OVERRIDES = {"cauchy": {"guidance": {"proposal_df": 1, "proposals": 32}}}
-# SF's sampler in the tables: the CSF config its cached runs were made with (base inflation 0.2),
-# kept when CSF's moved to base 0 (2026-11-24): SF's runs cost hours. The triple well's SF runs
-# (3.5 min for 10) were remade with CSF's sampler (base 0; it had 1.0 before, as CSF had then).
+# SF's sampler in the tables: base inflation 0.2, the config of SF's cached runs (SF's runs cost
+# hours, so they are not remade for each change of CSF's sampler); on the triple well, whose SF
+# runs are cheap, CSF's own sampler (base 0).
 SF_SAMPLER_BASE = {"prior_inflation": 0.2}
 SF_SAMPLER_OVERRIDES = {"triple_well": {"prior_inflation": 0.0}}
 
@@ -103,8 +114,8 @@ class Progress:
     callback (``progress=`` of ``csf_jax.filter`` / ``csf_jax.score_filter``).
 
     One instance per method: the filters take it as a static argument, so every batch of runs
-    reuses one compilation. ``offset`` says how many filter steps earlier batches covered, ``width``
-    how many runs the current batch holds (the callback fires once per step for the whole batch).
+    reuses one compilation. ``offset`` says how many filter steps the batches before the current one
+    covered, ``width`` how many runs the current batch holds (the callback fires once per step for the whole batch).
     """
 
     def __init__(self, label: str, total: int, enabled: bool = True):
@@ -148,8 +159,8 @@ def _simulate(model, k_sim, k_ens, particles: int):
 
 def simulate_runs(model, runs: int, particles: int, seed: int):
     """``truth (R, K+1, d)``, ``obs (R, K, m)``, ``shocks (R, K)`` bool, ``ens (R, N, d)``, filter
-    keys ``(R,)``. One compiled computation: op by op it compiled ~50 small ones (3-6 s on 2 cores),
-    and its numbers differ from these in the last bits (tables before 2026-11-23 were made so)."""
+    keys ``(R,)``. One compiled computation (op by op it would compile ~50 small ones; the numbers
+    of the two ways differ in the last bits)."""
     k_sim, k_ens, k_filt = run_keys(seed, runs)
     return (*_simulate(model, k_sim, k_ens, particles), k_filt)
 
@@ -194,11 +205,11 @@ def method_fn(method: str, model, config: CSFConfig, sf: SFConfig, pretrained, p
     raise SystemExit(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
 
 
-# Config fields added after caches were made, at the value that reproduces the old behaviour: left
-# out of fingerprints, so that adding a field does not invalidate the cached runs of the tables.
-NEUTRAL_FIELDS = {"base": "none",  # NetworkConfig.base (SFConfig.network), 2026-11-23
-                  "proposal_df": None,  # GuidanceConfig.proposal_df, 2026-11-24
-                  "mixture": None}  # CSFConfig.mixture
+# Config fields whose value here leaves the method's computation as it is without the field: left
+# out of fingerprints at that value, so that adding such a field does not invalidate cached runs.
+NEUTRAL_FIELDS = {"base": "none",  # NetworkConfig.base (SFConfig.network): no Gaussian base
+                  "proposal_df": None,  # GuidanceConfig.proposal_df: Gaussian proposals
+                  "mixture": None}  # CSFConfig.mixture: no mixture prior
 
 
 def _neutral(obj):
@@ -388,7 +399,7 @@ def sf_shards(runs: int, sf: SFConfig) -> int:
     return max(k for k in range(1, n + 1) if sf.batch % k == 0)
 
 
-def run(name: str, methods=METHODS, runs: int = 10, particles: int = 1000,
+def run(name: str, methods=METHODS, runs: int = RUNS, particles: int = PARTICLES,
         steps: int = CSFConfig().reverse_steps, seed: int = 0, num_steps: int | None = None, prior: str = "pretrained",
         out: str | None = None, batch: int | None = None, sf: SFConfig = SFConfig(),
         method_runs: dict | None = None, progress: bool = True, figures: bool = True,
@@ -461,22 +472,24 @@ def run(name: str, methods=METHODS, runs: int = 10, particles: int = 1000,
             json.dump(out_dict, f, indent=1)
         if figures:
             _figures(out, name, model, truth, shocks_np, means, pretrained, config, ens,
-                     run_keys(seed, 1)[0, 0], "csf" in methods)
+                     run_keys(seed, 1)[0, 0], "csf" in methods,
+                     prior=gaussian_prior(config.sigma_max) if prior == "gaussian" else None)
     return out_dict
 
 
-def _figures(out, name, model, truth, shocks, means, pretrained, config, ens, sim_key, with_csf):
+def _figures(out, name, model, truth, shocks, means, pretrained, config, ens, sim_key, with_csf,
+             prior=None):
     """Write the PNG figures, or say how to get matplotlib."""
     try:
         from experiments import figures
     except ImportError as e:  # matplotlib missing
-        print(f"  figures skipped ({e}); pip install -e '.[plots]' to get them", file=sys.stderr)
+        print(f"  figures skipped ({e}); pip install matplotlib to get them", file=sys.stderr)
         return
     paths = [figures.estimates(out, name, truth, shocks, means),
              figures.rmse_over_time(out, name, truth, shocks, means)]
     if model.dim == 1 and with_csf:
         paths.append(figures.prior_vs_model(out, name, model, pretrained, config, ens[0], sim_key,
-                                            shocks[0]))
+                                            shocks[0], prior=prior))
     print("  figures: " + ", ".join(paths), file=sys.stderr)
 
 
@@ -515,40 +528,75 @@ def table(results: dict) -> str:
     return "\n".join(rows)
 
 
-def main(argv=None):
-    p = argparse.ArgumentParser(prog="python -m experiments.run", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("problem", choices=problems.NAMES)
-    p.add_argument("--methods", type=name_list(METHODS, "method"), default=list(METHODS))
-    p.add_argument("--runs", type=positive_int, default=None, help="independent runs (default 10)")
-    p.add_argument("--particles", type=particle_count, default=None, help="N (default 1000)")
+DESCRIPTION = ("Run CSF, CSF-G, SF, EnKF, PF and the reference filter on one of the paper's "
+               "problems and print the RMSE table; with --out, also write results.json, the PNG "
+               "figures and a resumable cache of finished runs there.")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m experiments.run``."""
+    p = parser("run", DESCRIPTION)
+    p.add_argument("problem", choices=problems.NAMES, metavar="PROBLEM",
+                   help="the problem: %(choices)s")
+    p.add_argument("--methods", type=name_list(METHODS, "method"), default=list(METHODS),
+                   metavar="M,M,...",
+                   help="comma-separated methods from: " + "; ".join(
+                       f"{m} ({METHOD_HELP[m]})" for m in METHODS) + " (default: all)")
+    p.add_argument("--runs", type=positive_int, default=None,
+                   help=f"independent runs (default {RUNS}; {QUICK['runs']} with --quick)")
+    p.add_argument("--particles", type=particle_count, default=None,
+                   help=f"ensemble size N, at least 2 (default {PARTICLES}; "
+                        f"{QUICK['particles']} with --quick)")
     p.add_argument("--steps", type=particle_count, default=None,
-                   help=f"reverse steps L, at least 2 (default {CSFConfig().reverse_steps})")
+                   help=f"CSF's and SF's reverse steps L, at least 2 (default "
+                        f"{CSFConfig().reverse_steps}; {QUICK['steps']} with --quick)")
     p.add_argument("--guidance", choices=MODES, default=GuidanceConfig().mode,
-                   help="CSF's and SF's sampler: 'kalman' (default, ancestral with Kalman "
-                        "guidance) or a DPS mode with Euler-Maruyama (the paper's: --guidance "
-                        "clipped --steps 500)")
-    p.add_argument("--seed", type=nonnegative_int, default=0)
-    p.add_argument("--out", default=None, help="directory for results.json, figures and the cache")
-    p.add_argument("--batch", type=positive_int, default=None, help="runs per batch (see above)")
+                   help="CSF's and SF's sampler: 'kalman' (ancestral with Kalman guidance) or a "
+                        "DPS mode with Euler-Maruyama (the paper's: --guidance clipped --steps "
+                        "500); choices %(choices)s (default %(default)s)")
+    p.add_argument("--seed", type=nonnegative_int, default=0,
+                   help="seed of the runs' keys (default %(default)s)")
+    p.add_argument("--out", default=None,
+                   help="directory for results.json, the figures and the run cache (default: "
+                        "none, only the table is printed)")
+    p.add_argument("--batch", type=positive_int, default=None,
+                   help="runs per batch (default: all runs for EnKF, PF and the reference and on "
+                        "an accelerator; on a CPU one run per core)")
     p.add_argument("--sf-runs", type=positive_int, default=None,
-                   help="run SF on the first R runs only (default: all; on CPU 2, see above)")
+                   help=f"run SF on the first R runs only, R <= --runs (default: all runs; on a "
+                        f"CPU {CPU_SF_RUNS}, its online training being the slow column)")
     p.add_argument("--prior", choices=PRIORS, default="pretrained",
-                   help="CSF prior: the shipped model (default), the exact Gaussian mixture, or "
-                        "the ensemble's own Gaussian (no training)")
+                   help="CSF's prior: 'pretrained' (the shipped model), 'exact' (the exact "
+                        "Gaussian mixture) or 'gaussian' (the ensemble's own Gaussian, no "
+                        "training) (default %(default)s)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--quick", action="store_true",
-                   help="a first look and CI: 2 runs, N=100, L=20, 10 filter steps, SF budget "
-                        "20 steps (warm-up 100)")
+                   help=f"a first look and CI: {QUICK['runs']} runs, N={QUICK['particles']}, "
+                        f"L={QUICK['steps']}, {QUICK['num_steps']} filter steps, SF budget "
+                        f"{QUICK_SF.train_steps} steps (warm-up {QUICK_SF.warmup_steps}), a "
+                        f"smaller reference filter")
+    return p
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    """The checked arguments, with ``runs``, ``particles`` and ``steps`` resolved (``--quick``)."""
+    p = build_parser()
     args = p.parse_args(argv)
     if args.out is not None and os.path.exists(args.out) and not os.path.isdir(args.out):
         p.error(f"argument --out: {args.out!r} exists and is not a directory")
     q = QUICK if args.quick else {}
-    runs = q.get("runs", 10) if args.runs is None else args.runs
-    particles = q.get("particles", 1000) if args.particles is None else args.particles
-    steps = q.get("steps", CSFConfig().reverse_steps) if args.steps is None else args.steps
-    if args.sf_runs is not None and args.sf_runs > runs:
-        p.error(f"argument --sf-runs: {args.sf_runs} exceeds the {runs} runs")
+    args.runs = q.get("runs", RUNS) if args.runs is None else args.runs
+    args.particles = q.get("particles", PARTICLES) if args.particles is None else args.particles
+    args.steps = q.get("steps", CSFConfig().reverse_steps) if args.steps is None else args.steps
+    if args.sf_runs is not None and args.sf_runs > args.runs:
+        p.error(f"argument --sf-runs: {args.sf_runs} exceeds the {args.runs} runs (--runs)")
+    return args
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    q = QUICK if args.quick else {}
+    runs, particles, steps = args.runs, args.particles, args.steps
     methods = args.methods
     sf = QUICK_SF if args.quick else SFConfig()
     sf_runs = args.sf_runs
@@ -568,8 +616,8 @@ def main(argv=None):
     print(table(results))
     if args.out:
         print(f"wrote {os.path.join(args.out, 'results.json')}", file=sys.stderr)
-    if args.quick or runs < 10 or particles != 1000:
-        print("This is not the table's setting (10 runs, N=1000).", file=sys.stderr)
+    if args.quick or runs < RUNS or particles != PARTICLES:
+        print(f"This is not the table's setting ({RUNS} runs, N={PARTICLES}).", file=sys.stderr)
     if sf_runs is not None and sf_runs < runs and args.sf_runs is None:
         print(f"SF ran on {sf_runs} of {runs} runs (CPU budget); --sf-runs {runs} for all.",
               file=sys.stderr)

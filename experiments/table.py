@@ -8,8 +8,8 @@ sampler, default CSFConfig's) on each problem into
 ``OUT/<problem>/`` (``results.json``, figures and the per-batch cache), then rewrites the generated
 part of the results page (between its ``<!-- table:start -->`` and ``<!-- table:end -->`` markers)
 from every ``results.json`` found, beside the paper's values. Resumable: run it again after an
-interruption, or in a later session, and finished runs are reused. ``--sf-runs`` runs SF on the
-first R runs only (all problems, or the problems named): its online training is what a CPU budget
+interruption and finished runs are reused. ``--sf-runs`` runs SF on the first R runs only (all
+problems, or the problems named; R <= ``--runs``): its online training is what a CPU budget
 cannot afford; the page marks such cells. ``--write-only`` only rewrites the page.
 """
 
@@ -24,7 +24,7 @@ import time
 
 from csf_jax import problems  # noqa: E402  (isort: after run_mod on purpose)
 from experiments import run as run_mod  # first: it sets XLA's host devices before jax loads
-from experiments._cli import name_list, particle_count, positive_int  # noqa: E402
+from experiments._cli import name_list, parser, particle_count, positive_int  # noqa: E402
 
 # The paper's Table (RMSE over 10 runs) and its per-step time table (s, RTX 4090).
 PAPER_RMSE = {  # as printed in the paper
@@ -185,45 +185,81 @@ def write_page(path: str, body: str) -> None:
         f.write(f"{head}{START}\n{body}\n{END}{tail}")
 
 
-def parse_sf_runs(text, names) -> dict:
-    """``--sf-runs``: ``"5"`` -> ``{name: 5 for names}``; ``"a=5,b=3"`` -> ``{"a": 5, "b": 3}``."""
+def parse_sf_runs(text, names, runs: int | None = None) -> dict:
+    """``--sf-runs``: ``"5"`` -> ``{name: 5 for names}``; ``"a=5,b=3"`` -> ``{"a": 5, "b": 3}``.
+
+    Raises ``argparse.ArgumentTypeError`` for a malformed value, an unknown problem, or an R below
+    1 or above ``runs``."""
     if not text:
         return {}
     try:
         if "=" not in text:
-            return {n: int(text) for n in names}
-        pairs = [item.split("=") for item in text.split(",") if item.strip()]
-        out = {k.strip(): int(v) for k, v in pairs}
+            out = {n: int(text) for n in names}
+        else:
+            pairs = [item.split("=") for item in text.split(",") if item.strip()]
+            out = {k.strip(): int(v) for k, v in pairs}
     except ValueError:
-        raise SystemExit(f"--sf-runs: expected R or problem=R,..., got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"expected R or problem=R,..., got {text!r}") from None
     unknown = [n for n in out if n not in problems.NAMES]
-    if unknown or any(r < 1 for r in out.values()):
-        raise SystemExit(f"--sf-runs: unknown problem(s) {unknown} or R < 1 in {text!r}")
+    if unknown:
+        raise argparse.ArgumentTypeError(f"unknown problem {', '.join(map(repr, unknown))}; "
+                                         f"choose from {', '.join(problems.NAMES)}")
+    for n, r in out.items():
+        if r < 1:
+            raise argparse.ArgumentTypeError(f"R must be >= 1, got {r}" + (
+                f" for {n}" if "=" in text else ""))
+        if runs is not None and r > runs:
+            raise argparse.ArgumentTypeError(f"{r} exceeds the {runs} runs (--runs)" + (
+                f" for {n}" if "=" in text else ""))
     return out
 
 
-def main(argv=None):
-    p = argparse.ArgumentParser(prog="python -m experiments.table", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--problems", type=name_list(problems.NAMES, "problem"), default=list(COLUMNS))
-    p.add_argument("--out", default="results")
-    p.add_argument("--runs", type=positive_int, default=10)
-    p.add_argument("--sf-runs", default=None,
-                   help="run SF on fewer runs (CPU budget): R for every problem, or "
-                        "problem=R,... for those named")
+DESCRIPTION = ("Run the main job (experiments.run) on every problem into OUT/<problem>/ "
+               "(results.json, figures, cache; resumable) and rewrite the generated table of the "
+               "results page beside the paper's values.")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m experiments.table``."""
+    p = parser("table", DESCRIPTION)
+    p.add_argument("--problems", type=name_list(problems.NAMES, "problem"), default=list(COLUMNS),
+                   metavar="P,P,...",
+                   help=f"comma-separated problems from: {', '.join(COLUMNS)} (default: all)")
+    p.add_argument("--out", default="results",
+                   help="folder of the per-problem results (default %(default)s)")
+    p.add_argument("--runs", type=positive_int, default=10,
+                   help="independent runs per problem (default %(default)s)")
+    p.add_argument("--sf-runs", default=None, metavar="R|P=R,...",
+                   help="run SF on fewer runs (CPU budget), at most --runs: R for every problem, "
+                        "or problem=R,... for those named (default: all runs)")
     p.add_argument("--steps", type=particle_count, default=run_mod.CSFConfig().reverse_steps,
-                   help="CSF's and SF's reverse steps L")
+                   help="CSF's and SF's reverse steps L (default %(default)s)")
     p.add_argument("--guidance", choices=run_mod.MODES, default=run_mod.GuidanceConfig().mode,
-                   help="CSF's and SF's sampler (the paper's: --guidance clipped --steps 500)")
-    p.add_argument("--docs", default=os.path.join("docs", "results.md"))
-    p.add_argument("--write-only", action="store_true", help="only rewrite the results page")
+                   help="CSF's and SF's sampler, one of %(choices)s (the paper's: --guidance "
+                        "clipped --steps 500) (default %(default)s)")
+    p.add_argument("--docs", default=os.path.join("docs", "results.md"),
+                   help="the results page to rewrite (default %(default)s)")
+    p.add_argument("--write-only", action="store_true",
+                   help="only rewrite the results page from the results found under --out")
+    return p
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    """The checked arguments; ``sf_runs`` parsed to ``{problem: R}``."""
+    p = build_parser()
     args = p.parse_args(argv)
-    names = args.problems
+    args.sf_text = args.sf_runs
     try:
-        sf_runs = parse_sf_runs(args.sf_runs, names)
-    except SystemExit as e:
-        p.error(str(e))
-    command = "python -m experiments.table" + (f" --sf-runs {args.sf_runs}" if args.sf_runs else "")
+        args.sf_runs = parse_sf_runs(args.sf_runs, args.problems, args.runs)
+    except argparse.ArgumentTypeError as e:
+        p.error(f"argument --sf-runs: {e}")
+    return args
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    names, sf_runs = args.problems, args.sf_runs
+    command = "python -m experiments.table" + (f" --sf-runs {args.sf_text}" if args.sf_text else "")
     if (args.steps, args.guidance) != (run_mod.CSFConfig().reverse_steps,
                                        run_mod.GuidanceConfig().mode):
         command += f" --guidance {args.guidance} --steps {args.steps}"

@@ -1,6 +1,6 @@
 """Run the tutorial page ``docs/tutorial.md``: its Python blocks, in order, as one script.
 
-    python -m experiments.tutorial [OUT]    # default docs/tutorial
+    python -m experiments.tutorial [OUT] [--no-extras]    # OUT: default docs/tutorial
 
 Writes the script to ``OUT/tutorial.py``, runs it with ``OUT`` as the working directory (the
 trained prior, its run folder and the figure land there) and saves what it printed to
@@ -10,12 +10,15 @@ trained prior, its run folder and the figure land there) and saves what it print
 
 from __future__ import annotations
 
+import argparse
 import os
 import pathlib
 import re
 import subprocess
 import sys
 import time
+
+from experiments._cli import parser
 
 PAGE = pathlib.Path(__file__).resolve().parents[1] / "docs" / "tutorial.md"
 
@@ -49,12 +52,35 @@ def run(out: str, page: pathlib.Path = PAGE, extras: bool = False) -> str:
     return done.stdout
 
 
+DESCRIPTION = ("Run the Python blocks of docs/tutorial.md as one script in OUT: write "
+               "OUT/tutorial.py, run it there (its trained prior, run folder and figure land in "
+               "OUT) and save what it printed to OUT/output.txt.")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m experiments.tutorial``."""
+    p = parser("tutorial", DESCRIPTION)
+    p.add_argument("out", nargs="?", default=str(PAGE.parent / "tutorial"), metavar="OUT",
+                   help="folder to run the tutorial in (default %(default)s)")
+    p.add_argument("--no-extras", action="store_true",
+                   help="leave out the page's ```python extra comparison blocks, as the CI test "
+                        "does")
+    return p
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = build_parser()
+    args = p.parse_args(argv)
+    if os.path.exists(args.out) and not os.path.isdir(args.out):
+        p.error(f"argument OUT: {args.out!r} exists and is not a directory")
+    return args
+
+
 def main(argv=None):
-    argv = sys.argv[1:] if argv is None else argv
-    out = argv[0] if argv else str(PAGE.parent / "tutorial")
+    args = parse_args(argv)
     t0 = time.perf_counter()
-    print(run(out, extras=True), end="")
-    print(f"tutorial ran in {time.perf_counter() - t0:.0f} s; outputs in {out}")
+    print(run(args.out, extras=not args.no_extras), end="")
+    print(f"tutorial ran in {time.perf_counter() - t0:.0f} s; outputs in {args.out}")
 
 
 if __name__ == "__main__":

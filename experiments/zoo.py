@@ -30,7 +30,7 @@ import csf_jax
 from csf_jax import problems
 from csf_jax.filters.kalman import kalman_filter
 from csf_jax.problems.zoo import ZOO_GAPS, linear20_gaussian
-from experiments._cli import int_at_least, name_list, positive_int, write_page
+from experiments._cli import int_at_least, name_list, parser, positive_int, write_page
 from experiments.run import machine
 
 METHODS = ("csf", "csf_robust", "pf", "enkf", "reference")
@@ -195,25 +195,38 @@ def page(results: dict, command: str) -> list:
     return lines
 
 
-def main(argv=None):
-    p = argparse.ArgumentParser(prog="python -m experiments.zoo", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+DESCRIPTION = ("Benchmark CSF (defaults and csf_jax.ROBUST) against the PF, the EnKF and a "
+               "near-exact reference on the zoo's unseen models; cache the runs and write "
+               "results.json under --out and the markdown page to --page.")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m experiments.zoo``."""
+    p = parser("zoo", DESCRIPTION)
     p.add_argument("--models", type=name_list(tuple(problems.ZOO), "model"),
-                   default=list(problems.ZOO), help="comma-separated zoo models (default: all: "
-                   + ", ".join(problems.ZOO) + ")")
+                   default=list(problems.ZOO), metavar="M,M,...",
+                   help="comma-separated zoo models from: " + ", ".join(problems.ZOO)
+                   + " (default: all)")
     p.add_argument("--methods", type=name_list(METHODS, "method"), default=list(METHODS),
-                   help="comma-separated methods: " + ", ".join(METHODS))
-    p.add_argument("--runs", type=positive_int, default=10, help="runs per model (default 10)")
+                   metavar="M,M,...",
+                   help="comma-separated methods from: " + ", ".join(METHODS) + " (default: all)")
+    p.add_argument("--runs", type=positive_int, default=10,
+                   help="runs per model (default %(default)s)")
     p.add_argument("--particles", type=int_at_least(2), default=1000,
-                   help="N for CSF, PF and EnKF (default 1000)")
+                   help="N for CSF, PF and EnKF, at least 2 (default %(default)s)")
     p.add_argument("--reference-particles", type=int_at_least(2), default=100_000,
-                   help="the reference particle filter's particles (default 100000)")
-    p.add_argument("--seed", type=int_at_least(0), default=0, help="seed of the runs (default 0)")
+                   help="the reference particle filter's particles (default %(default)s)")
+    p.add_argument("--seed", type=int_at_least(0), default=0,
+                   help="seed of the runs (default %(default)s)")
     p.add_argument("--out", default=os.path.join("results", "zoo"),
-                   help="folder for results.json and the cache (default results/zoo)")
+                   help="folder for results.json and the cache (default %(default)s)")
     p.add_argument("--page", default=os.path.join("docs", "zoo.md"),
-                   help="markdown page to write (default docs/zoo.md)")
-    args = p.parse_args(argv)
+                   help="markdown page to write (default %(default)s)")
+    return p
+
+
+def main(argv=None):
+    args = build_parser().parse_args(argv)
     cache = os.path.join(args.out, "cache")
     os.makedirs(cache, exist_ok=True)
     results = {"config": {"runs": args.runs, "particles": args.particles, "seed": args.seed,
