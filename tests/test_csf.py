@@ -100,6 +100,7 @@ def test_vmap_and_jit_match_unbatched():
                                    rtol=1e-4, atol=1e-4)
 
 
+@pytest.mark.slow  # kept out of the default run's time budget; run with -m slow
 def test_learned_prior_under_vmap_and_same_key_same_result():
     model, _, obs, ens = _small_run("double_well", num_steps=4)
     params = csf_jax.init_params(jax.random.key(0), TINY_NET, dim=1)

@@ -88,9 +88,13 @@ FILTERS = {
 
 
 CASES = [(name, False) for name in FILTERS] + [(name, True) for name in ("pf", "enkf", "csf")]
+SLOW = {("sf", False)}  # SF trains online: kept out of the default run's time budget
 
 
-@pytest.mark.parametrize("name,full", CASES, ids=[f"{n}-{'full' if f else 'iso'}" for n, f in CASES])
+@pytest.mark.parametrize("name,full", [
+    pytest.param(n, f, id=f"{n}-{'full' if f else 'iso'}",
+                 marks=[pytest.mark.slow] if (n, f) in SLOW else [])
+    for n, f in CASES])
 def test_every_filter_with_gaps_is_within_1_1x_of_kalman(name, full):
     """d = 4, m = 3, 30% of entries and 20% of whole steps missing; 4 runs of 20 steps, N = 500.
     Full covariances: SF shares CSF's sampler, so CSF's case covers it."""

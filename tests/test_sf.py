@@ -103,6 +103,7 @@ except ValueError as e:
 """
 
 
+@pytest.mark.slow  # kept out of the default run's time budget; run with -m slow
 def test_data_parallel_training_is_the_same_filter():
     """shards=2 splits each Adam batch over two XLA host devices (a fresh process: the device count
     is fixed at start-up): the same draws, the same posterior ensembles up to float summation order

@@ -50,6 +50,7 @@ def tiny_data_path(data):
     return data.ensembles.filename
 
 
+@pytest.mark.slow  # kept out of the default run's time budget; run with -m slow
 def test_small_model_trains_and_loss_falls(tiny_data, tmp_path):
     cfg = TrainConfig(steps=150, batch_sets=8, targets_per_set=32, set_sizes=(16, 32),
                       save_every=150, eval_every=50, lr=3e-3)
