@@ -1,4 +1,6 @@
-"""Input checks at the API boundary: shapes, dimensions and finiteness, with clear messages.
+"""Input checks at the API boundary, with clear one-line messages: shapes, dimensions, dtypes and
+finiteness of arrays; PRNG keys; the field types of the frozen config dataclasses
+(``check_fields``); paths and folders to be read or written (``check_path``, ``check_folder``).
 
 Shape checks run at trace time, so they also fire under ``jax.jit`` and ``jax.vmap``. Value checks
 (NaN/inf) need concrete arrays and are skipped for tracers: inside a user's ``jit`` the caller owns
@@ -6,6 +8,14 @@ them.
 """
 
 from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import numbers
+import os
+import types
+import typing
 
 import jax
 import jax.numpy as jnp
@@ -119,18 +129,27 @@ def check_filter_inputs(obs, ensemble, model, *, name: str = "filter") -> tuple[
 
 
 def check_key(key, name: str = "filter") -> None:
-    """Require a JAX PRNG key (typed ``jax.random.key`` or legacy uint32 ``(2,)``)."""
+    """Require one JAX PRNG key: a typed ``jax.random.key`` (shape ``()``) or a legacy uint32
+    ``(2,)`` key (``jax.random.PRNGKey``). A batch of keys (``jax.random.split``) is refused."""
     if key is None:
         raise TypeError(f"{name}: key= is required (e.g. key=jax.random.key(0)); "
                         f"there is no global RNG")
-    if jnp.issubdtype(jnp.asarray(key).dtype if not hasattr(key, "dtype") else key.dtype,
-                      jax.dtypes.prng_key):
-        if jnp.shape(key) != ():
-            raise ValueError(f"{name}: key must be a single key, got shape {jnp.shape(key)}")
+    dtype = getattr(key, "dtype", None)
+    shape = jnp.shape(key) if dtype is not None else None
+    if dtype is not None and jnp.issubdtype(dtype, jax.dtypes.prng_key):
+        if shape != ():
+            raise ValueError(f"{name}: key must be a single key, got a batch of keys of shape "
+                             f"{shape}; pick one (keys[0]) or vmap over them")
         return
-    if jnp.shape(key) != (2,) or jnp.asarray(key).dtype != jnp.uint32:
-        raise TypeError(f"{name}: key must be a jax.random.key, got {type(key).__name__} with "
-                        f"shape {jnp.shape(key)}")
+    if dtype is not None and dtype == jnp.uint32 and len(shape) >= 1 and shape[-1] == 2:
+        if shape != (2,):
+            raise ValueError(f"{name}: key must be a single key, got a batch of legacy keys of "
+                             f"shape {shape}; pick one (keys[0]) or vmap over them")
+        return
+    what = f"{type(key).__name__} with shape {shape} and dtype {dtype}" if dtype is not None \
+        else f"{type(key).__name__} {key!r:.40}"
+    raise TypeError(f"{name}: key must be a jax.random.key (e.g. key=jax.random.key(0)), got "
+                    f"{what}")
 
 
 def check_result_finite(name: str, result) -> None:
@@ -148,22 +167,30 @@ def check_result_finite(name: str, result) -> None:
             f"raw result instead.")
 
 
+def compute_dtype(*dtypes):
+    """The float dtype a filter computes in for inputs of ``dtypes``: their common float dtype
+    (``jnp.result_type``), at least float32 (half precision has no LAPACK and too little
+    resolution for covariances)."""
+    dtype = jnp.result_type(*dtypes)
+    return jnp.promote_types(dtype, jnp.float32)
+
+
 def promote(obs, ensemble):
-    """``obs (K, m)`` and ``ensemble (N, d)`` as arrays of their common float dtype
-    (``jnp.result_type``: a float16 ensemble with float32 obs runs in float32; float64 obs with a
-    float32 ensemble in float64 under x64). Inputs are already checked to be floating."""
+    """``obs (K, m)`` and ``ensemble (N, d)`` as arrays of their compute dtype (``compute_dtype``:
+    float16 inputs run in float32; float64 obs with a float32 ensemble in float64 under x64).
+    Inputs are already checked to be floating."""
     obs, ensemble = jnp.asarray(obs), jnp.asarray(ensemble)
-    dtype = jnp.result_type(obs.dtype, ensemble.dtype)
+    dtype = compute_dtype(obs.dtype, ensemble.dtype)
     return obs.astype(dtype), ensemble.astype(dtype)
 
 
 def promote_tree(obs, state):
     """``obs`` and every floating leaf of ``state`` (an ensemble, or a filter's initial state) as
-    arrays of their common float dtype (as ``promote``)."""
+    arrays of their compute dtype (as ``promote``)."""
     obs = jnp.asarray(obs)
     leaves = [jnp.asarray(x) for x in jax.tree_util.tree_leaves(state)]
-    dtype = jnp.result_type(obs.dtype, *[x.dtype for x in leaves
-                                         if jnp.issubdtype(x.dtype, jnp.floating)])
+    dtype = compute_dtype(obs.dtype, *[x.dtype for x in leaves
+                                       if jnp.issubdtype(x.dtype, jnp.floating)])
     cast = lambda x: (jnp.asarray(x).astype(dtype)
                       if jnp.issubdtype(jnp.asarray(x).dtype, jnp.floating) else jnp.asarray(x))
     return obs.astype(dtype), jax.tree_util.tree_map(cast, state)
@@ -174,3 +201,114 @@ def check_sigma_max(network, config, name: str) -> None:
     if network.sigma_max != config.sigma_max:
         raise ValueError(f"{name}: the network config has sigma_max={network.sigma_max}, but the "
                          f"sampler's config.sigma_max={config.sigma_max}; they must agree")
+
+
+class FieldTypeError(TypeError, ValueError):
+    """A config field of the wrong type: a TypeError, and a ValueError too, so that callers that
+    catch bad config values (``except ValueError``) catch it as well."""
+
+
+@functools.cache
+def _field_types(cls) -> dict:
+    """The resolved annotations of a dataclass's fields (``typing.get_type_hints``), or {} where
+    they cannot be resolved (then nothing is checked by type)."""
+    try:
+        return typing.get_type_hints(cls)
+    except Exception:  # noqa: BLE001  (an unresolvable forward reference)
+        return {}
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, numbers.Integral) and not isinstance(v, (bool, np.bool_))
+
+
+def _is_number(v) -> bool:
+    return (isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_))
+            and math.isfinite(float(v)))
+
+
+_SIMPLE = {int: (_is_int, "an int"), float: (_is_number, "a finite number"),
+           bool: (lambda v: isinstance(v, (bool, np.bool_)), "a bool (True or False)"),
+           str: (lambda v: isinstance(v, str), "a str"),
+           tuple: (lambda v: isinstance(v, tuple), "a tuple")}
+
+
+def _field_type_problem(value, hint) -> str | None:
+    """None if ``value`` fits the annotation ``hint`` (a class, or a union of classes and None);
+    else what was expected. Annotations beyond plain classes (``Callable``) are not checked."""
+    options = typing.get_args(hint) if isinstance(hint, types.UnionType) or \
+        typing.get_origin(hint) is typing.Union else (hint,)
+    words = []
+    for option in options:
+        if option is type(None):
+            if value is None:
+                return None
+            words.append("None")
+        elif option in _SIMPLE:
+            ok, word = _SIMPLE[option]
+            if value is not None and ok(value):
+                return None
+            words.append(word)
+        elif isinstance(option, type):
+            if isinstance(value, option):
+                return None
+            words.append(f"a {option.__name__}")
+        else:
+            return None
+    return " or ".join(words)
+
+
+def check_fields(config, *, positive: tuple = (), nonnegative: tuple = ()) -> None:
+    """Check a frozen config dataclass: every field holds the type it is annotated with (``int``,
+    ``float``, ``bool``, ``str``, ``tuple``, a config class, optionally ``| None``; floats finite,
+    ints never bools), then
+    the fields named in ``positive`` are > 0 and those in ``nonnegative`` >= 0 (None skipped).
+    Raises ``FieldTypeError`` (a TypeError and a ValueError) or ValueError naming
+    ``Class.field``; call it first in ``__post_init__``."""
+    cls = type(config).__name__
+    hints = _field_types(type(config))
+    for field in dataclasses.fields(config):
+        value = getattr(config, field.name)
+        if field.name not in hints:
+            continue
+        want = _field_type_problem(value, hints[field.name])
+        if want is not None:
+            raise FieldTypeError(f"{cls}.{field.name} must be {want}, got {value!r} "
+                                 f"({type(value).__name__})")
+    for names, ok, word in ((positive, lambda v: v > 0, "> 0"),
+                            (nonnegative, lambda v: v >= 0, ">= 0")):
+        for name in names:
+            value = getattr(config, name)
+            if value is not None and not ok(value):
+                raise ValueError(f"{cls}.{name} must be {word}, got {value!r}")
+
+
+def check_path(path, name: str) -> str:
+    """``path`` as a non-empty ``str`` (``os.PathLike`` accepted); TypeError or ValueError naming
+    ``name`` otherwise (an empty path would mean the working directory)."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"{name}: the path must be a str or os.PathLike, got "
+                        f"{type(path).__name__}")
+    path = os.fspath(path)
+    if not path.strip():
+        raise ValueError(f"{name}: the path is empty; give a folder, e.g. 'runs/my_prior'")
+    return path
+
+
+def check_folder(path: str, name: str, *, writable: bool = False) -> None:
+    """Refuse a ``path`` that exists but is not a folder (NotADirectoryError), and with
+    ``writable`` one that cannot be written (PermissionError), or whose nearest existing parent
+    cannot; each message names the path."""
+    if os.path.exists(path) and not os.path.isdir(path):
+        raise NotADirectoryError(f"{name}: {path} is a file, not a folder; move it away or "
+                                 f"choose another folder")
+    if not writable:
+        return
+    probe = os.path.abspath(path)
+    while not os.path.exists(probe):
+        parent = os.path.dirname(probe)
+        if parent == probe:
+            break
+        probe = parent
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise PermissionError(f"{name}: cannot write to {path} ({probe} is not writable)")

@@ -29,7 +29,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from csf_jax import _linalg
+from csf_jax import _checks, _linalg
 
 MODES = ("kalman", "raw", "clipped", "normalized", "none")
 DPS_MODES = ("raw", "clipped", "normalized", "none")
@@ -67,6 +67,7 @@ class GuidanceConfig:
     proposal_df: int | None = None
 
     def __post_init__(self):
+        _checks.check_fields(self)
         if self.mode not in MODES:
             raise ValueError(f"GuidanceConfig.mode must be one of {MODES}, got {self.mode!r}")
         if isinstance(self.iterations, bool) or not isinstance(self.iterations, int) \

@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.special import logsumexp
 
-from csf_jax import _linalg
+from csf_jax import _checks, _linalg
 from csf_jax.guidance import importance_weights, kalman_tweedie
 from csf_jax.ssm import StateSpaceModel, curvature, log_likelihood, process_cov, tail_df
 
@@ -75,6 +75,7 @@ class MixtureConfig:
     ensemble_proposals: int = 64
 
     def __post_init__(self):
+        _checks.check_fields(self)
         for name in ("iterations", "proposals", "ensemble_iterations", "ensemble_proposals"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:

@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from csf_jax import _checks
 from csf_jax.sde import marginal_std
 
 _POSITIVE_INT_FIELDS = (
@@ -77,6 +78,7 @@ class NetworkConfig:
     outputs zero is the ensemble's Gaussian, and its output layer starts at zero."""
 
     def __post_init__(self):
+        _checks.check_fields(self)
         if self.base not in BASES:
             raise ValueError(f"NetworkConfig.base must be one of {BASES}, got {self.base!r}")
         for name in _POSITIVE_INT_FIELDS:

@@ -15,6 +15,7 @@ so filter code calls ``f(x)`` and ``h(x)`` either way.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from typing import NamedTuple
@@ -24,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import gammaln
 
-from csf_jax import _linalg
+from csf_jax import _checks, _linalg
 
 Array = jax.Array
 
@@ -431,6 +432,150 @@ def is_isotropic(model: StateSpaceModel) -> bool:
     return model.process_noise is None
 
 
+def check_model(model, name: str = "filter") -> None:
+    """Check ``model``'s structure at the API boundary, each failure one line naming the field:
+    a ``StateSpaceModel``; positive int ``dim``, ``obs_dim``, ``num_steps``; a finite
+    ``process_std >= 0``; its noises (``_check_noises``); callables; covariances of the model's
+    sizes (R ``(m, m)``, Q ``(d, d)``); hashable (the filters take it as a static argument)."""
+    if not isinstance(model, StateSpaceModel):
+        raise TypeError(f"{name}: the model must be a csf_jax.StateSpaceModel (e.g. "
+                        f"csf_jax.problems.get('pendulum')), got {type(model).__name__}")
+    label = f"{name}: model {model.name!r}"
+    for field in ("dim", "obs_dim", "num_steps"):
+        value = getattr(model, field)
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) \
+                or value < 1:
+            raise ValueError(f"{label}: {field} must be a positive int, got {value!r}")
+    if not _is_number(model.process_std) or model.process_std < 0:
+        raise ValueError(f"{label}: process_std must be a finite number >= 0, got "
+                         f"{model.process_std!r}")
+    _check_noises(model, label)
+    for field in ("drift", "observe", "initial_truth", "initial_ensemble", "shock_times", "shock"):
+        if not callable(getattr(model, field)):
+            raise TypeError(f"{label}: {field} must be callable, got "
+                            f"{type(getattr(model, field)).__name__}")
+    if not isinstance(model.time_varying, (bool, np.bool_)):
+        raise TypeError(f"{label}: time_varying must be a bool, got {model.time_varying!r}")
+    for which, cov, size in _covariances(model):
+        if np.shape(cov) != (size, size):
+            raise ValueError(f"{label}: {which} has shape {np.shape(cov)}, but the model needs "
+                             f"({size}, {size}) ({_SIZE_OF[which]}={size})")
+    _check_hashable(model, label)
+
+
+def _is_number(value) -> bool:
+    """A finite real number (not a bool)."""
+    return (isinstance(value, (int, float, np.integer, np.floating))
+            and not isinstance(value, (bool, np.bool_)) and math.isfinite(float(value)))
+
+
+def _check_noises(model: StateSpaceModel, label: str) -> None:
+    """``obs_noise``: an ``ObservationNoise`` (callables, a finite ``gaussian_std > 0``) or a
+    ``Likelihood`` (callables); ``process_noise``: a ``ProcessNoise`` or None."""
+    noise = model.obs_noise
+    if not isinstance(noise, (ObservationNoise, Likelihood)):
+        raise TypeError(f"{label}: obs_noise must be a csf_jax.ObservationNoise or "
+                        f"csf_jax.Likelihood, got {type(noise).__name__}")
+    optional = ("weight", "marginal") if is_additive(model) else ("fisher", "mean", "variance")
+    for field in ("log_prob", "sample") + optional:
+        value = getattr(noise, field)
+        if (value is None and field not in optional) or (value is not None
+                                                          and not callable(value)):
+            raise TypeError(f"{label}: obs_noise.{field} must be callable, got "
+                            f"{type(value).__name__}")
+    if is_additive(model) and not (_is_number(noise.gaussian_std) and noise.gaussian_std > 0):
+        raise ValueError(f"{label}: obs_noise.gaussian_std must be a finite number > 0, got "
+                         f"{noise.gaussian_std!r}")
+    if model.process_noise is not None and not isinstance(model.process_noise, ProcessNoise):
+        raise TypeError(f"{label}: process_noise must be a csf_jax.ProcessNoise or None, got "
+                        f"{type(model.process_noise).__name__}")
+
+
+def _check_hashable(model: StateSpaceModel, label: str) -> None:
+    """Every field hashable: the filters take the model as a static argument."""
+    for field, value in zip(model._fields, model):
+        try:
+            hash(value)
+        except TypeError:
+            raise TypeError(f"{label}: field {field} holds an unhashable "
+                            f"{type(value).__name__}; filters take the model as a static "
+                            f"argument, so use tuples and put arrays inside the callables' "
+                            f"closures") from None
+
+
+_SIZE_OF = {"the observation-noise covariance R": "obs_dim",
+            "the process-noise covariance Q": "dim"}
+
+
+def _covariances(model: StateSpaceModel):
+    """``(label, covariance, size)`` of the model's R and Q where it gives them."""
+    out = []
+    if is_additive(model) and model.obs_noise.covariance is not None:
+        out.append(("the observation-noise covariance R", model.obs_noise.covariance,
+                    model.obs_dim))
+    if model.process_noise is not None and model.process_noise.covariance is not None:
+        out.append(("the process-noise covariance Q", model.process_noise.covariance, model.dim))
+    return out
+
+
+def check_covariances(model: StateSpaceModel, dtype, name: str = "filter") -> None:
+    """Refuse an R or Q that is not positive definite in ``dtype``, the precision the filter
+    computes in: one that is in float64 can be singular in float32 (``[[1, 1 - 1e-9], [1 - 1e-9,
+    1]]``). The test is on the correlation matrix (scale free): its smallest eigenvalue must
+    exceed ``10 m eps(dtype)``."""
+    for which, cov, size in _covariances(model):
+        smallest, tol = _pd_margin(cov, np.dtype(dtype).name)
+        if smallest <= tol:
+            raise ValueError(
+                f"{name}: model {model.name!r}: {which} ({size} x {size}) is not positive "
+                f"definite in {np.dtype(dtype).name} (its correlation matrix's smallest "
+                f"eigenvalue {smallest:.3g} < {tol:.2g}); condition it better, or filter in "
+                f"float64 (jax_enable_x64 and float64 obs)")
+
+
+@functools.lru_cache(maxsize=256)
+def _pd_margin(cov: tuple, dtype: str) -> tuple[float, float]:
+    """The smallest eigenvalue of ``cov``'s correlation matrix, and the least it may be in
+    ``dtype`` (``10 m eps``)."""
+    arr = np.asarray(cov, np.float64)
+    tol = 10.0 * arr.shape[0] * float(np.finfo(np.dtype(dtype)).eps)
+    diag = np.diag(arr)
+    if not np.isfinite(arr).all() or not (diag > 0).all():
+        return -math.inf, tol
+    corr = arr / np.sqrt(diag)[:, None] / np.sqrt(diag)[None, :]
+    return float(np.linalg.eigvalsh(corr).min()), tol
+
+
+def check_dynamics(model: StateSpaceModel, dtype, inputs=None, name: str = "filter") -> None:
+    """Trace ``drift`` and ``observe`` once (``jax.eval_shape``: nothing is computed) on a state
+    ``(d,)`` of ``dtype`` and, for a time-varying model, the step with one slice of ``inputs``;
+    refuse outputs of the wrong shape, and turn a failure (a time-varying model's drift that needs
+    the inputs it was not given, say) into one line naming the model and the map."""
+    u = None if inputs is None else jax.tree_util.tree_map(
+        lambda a: jax.ShapeDtypeStruct(np.shape(a)[1:], jnp.result_type(a)), inputs)
+    _check_dynamics(model, np.dtype(dtype).name, u, name)
+
+
+def _check_dynamics(model: StateSpaceModel, dtype: str, u, name: str) -> None:
+    x = jax.ShapeDtypeStruct((model.dim,), dtype)
+    step = Step(jax.ShapeDtypeStruct((), jnp.int32), u)
+    label = f"{name}: model {model.name!r}"
+    for field, size in (("drift", model.dim), ("observe", model.obs_dim)):
+        try:
+            out = jax.eval_shape(lambda x, s, f=field: getattr(at_step(model, s), f)(x), x, step)
+        except Exception as e:  # noqa: BLE001  (whatever the user's function raises)
+            hint = (" (it is time-varying and got no inputs: pass inputs=, one per step)"
+                    if model.time_varying and u is None else "")
+            first = (str(e).strip().splitlines() or [""])[0][:160]
+            raise ValueError(f"{label}: its {field} fails on a state of shape ({model.dim},)"
+                             f"{hint}: {type(e).__name__}: {first}") from None
+        shape = getattr(out, "shape", None)
+        if shape != (size,):
+            raise ValueError(f"{label}: its {field} returns shape {shape} for a state of shape "
+                             f"({model.dim},); expected ({size},) "
+                             f"({'dim' if field == 'drift' else 'obs_dim'}={size})")
+
+
 def log_likelihood(model: StateSpaceModel, y: Array, x: Array) -> Array:
     """``log p(y | x)`` up to a constant for one particle: ``y: (m,)``, ``x: (d,)`` -> scalar.
 
@@ -519,7 +664,10 @@ def simulate(model: StateSpaceModel, key: Array, num_steps: int | None = None, i
     leaves have leading axis K (K defaults to theirs). Same key, same trajectory. Jit- and
     vmap-friendly.
     """
+    check_model(model, "simulate")
+    _checks.check_key(key, "simulate")
     K = _num_steps(model, num_steps, inputs, "simulate")
+    check_dynamics(model, jnp.float32, inputs, "simulate")
     k0, _, k_shock, k_proc, k_obs = jax.random.split(key, 5)
     x0 = model.initial_truth(k0)
     shocked = shock_steps(model, key, K)
@@ -566,7 +714,8 @@ def drop_observations(key: Array, obs: Array, rate: float, *, whole_steps: float
     """``obs (K, m)`` with entries set to NaN (missing): each entry independently with probability
     ``rate``, and each whole step with probability ``whole_steps`` (a step with no observation)."""
     for label, p in (("rate", rate), ("whole_steps", whole_steps)):
-        if not (isinstance(p, (int, float, np.floating)) and 0.0 <= float(p) <= 1.0):
+        if isinstance(p, (bool, np.bool_)) or not (
+                isinstance(p, (int, float, np.integer, np.floating)) and 0.0 <= float(p) <= 1.0):
             raise ValueError(f"drop_observations: {label} must be a probability in [0, 1], "
                              f"got {p!r}")
     k_entry, k_step = jax.random.split(key)

@@ -21,6 +21,7 @@ import copy
 import dataclasses
 import functools
 import json
+import math
 import os
 from typing import NamedTuple
 
@@ -29,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 
-from csf_jax import networks
+from csf_jax import _checks, _store, networks
 from csf_jax.ssm import StateSpaceModel, Step, at_step, is_additive
 
 
@@ -51,9 +52,17 @@ class TrainedPrior(NamedTuple):
 
     def save(self, directory: str) -> str:
         """Write this prior to ``directory`` (replacing a model folder there); returns its path.
-        ``csf_jax.load_prior(directory, model)`` reads it back."""
+        ``csf_jax.load_prior(directory, model)`` reads it back. An empty path, a file or a folder
+        that cannot be written is refused with one line naming it."""
+        directory = _checks.check_path(directory, "TrainedPrior.save")
         export(directory, self.params, self.network, self.meta)
         return os.path.abspath(directory)
+
+    def __repr__(self) -> str:
+        n_params = sum(math.prod(jnp.shape(x)) for x in jax.tree_util.tree_leaves(self.params))
+        serves = f", serves={tuple(self.serves)!r}" if self.serves else ""
+        return (f"TrainedPrior(problem={self.problem!r}, dim={self.dim}, "
+                f"network={_short_config(self.network)}, n_params={n_params}{serves})")
 
     @property
     def problem(self) -> str | None:
@@ -64,6 +73,14 @@ class TrainedPrior(NamedTuple):
     def dim(self) -> int | None:
         """The state dimension it was trained for (None if the meta record has none)."""
         return None if self.meta.get("dim") is None else int(self.meta["dim"])
+
+
+def _short_config(config) -> str:
+    """A dataclass config's repr with only the fields that differ from its defaults."""
+    default = type(config)()
+    changed = ", ".join(f"{f.name}={getattr(config, f.name)!r}" for f in dataclasses.fields(config)
+                        if getattr(config, f.name) != getattr(default, f.name))
+    return f"{type(config).__name__}({changed})"
 
 
 class _Static:
@@ -192,17 +209,24 @@ def export(directory: str, params, network: networks.NetworkConfig, meta: dict) 
     ``meta`` must name the ``problem`` and its ``dim``; ``params`` are checked against
     ``network`` and ``dim`` first, so an exported model always loads.
     """
+    directory = _checks.check_path(directory, "export")
     missing = [k for k in ("problem", "dim") if k not in meta]
     if missing:
         raise ValueError(f"export: meta must record {' and '.join(missing)} (the problem the "
                          f"model was trained for)")
     networks.check_params(params, network, int(meta["dim"]), name=f"export to {directory}: params")
     directory = os.path.abspath(directory)
-    os.makedirs(directory, exist_ok=True)
-    with ocp.StandardCheckpointer() as ckpt:
-        ckpt.save(os.path.join(directory, "params"), params, force=True)
-    with open(os.path.join(directory, "meta.json"), "w") as f:
-        json.dump({**meta, "network": dataclasses.asdict(network)}, f, indent=1)
+    _checks.check_folder(directory, f"save to {directory}", writable=True)
+    _checks.check_folder(os.path.join(directory, "params"), f"save to {directory}")
+    try:
+        os.makedirs(directory, exist_ok=True)
+        with ocp.StandardCheckpointer() as ckpt:
+            ckpt.save(os.path.join(directory, "params"), params, force=True)
+        with open(os.path.join(directory, "meta.json"), "w") as f:
+            json.dump({**meta, "network": dataclasses.asdict(network)}, f, indent=1)
+    except OSError as e:
+        raise OSError(f"save to {directory}: cannot write there ({type(e).__name__}: "
+                      f"{_first_line(e)})") from None
 
 
 def _read_meta(directory: str) -> tuple[dict, networks.NetworkConfig, int]:
@@ -283,11 +307,16 @@ def load_dir(directory: str, serves: tuple = ()) -> TrainedPrior:
     inconsistent folder fails with one line naming it and the mismatching field.
     serves: further problem names the model may filter (see ``Pretrained``).
     """
-    directory = os.path.abspath(directory)
+    directory = os.path.abspath(_checks.check_path(directory, "load_prior"))
+    _checks.check_folder(directory, f"model {directory}")
     meta, network, dim = _read_meta(directory)
     params_dir = os.path.join(directory, "params")
     _check_stored(_stored_shapes(params_dir, directory), network, dim, directory)
     target = networks._expected_params(network, dim)
+    damage = _store.damaged_array(params_dir)
+    if damage is not None:
+        raise ValueError(f"model {directory}: the parameters in {params_dir} cannot be restored "
+                         f"({damage})")
     try:
         with ocp.StandardCheckpointer() as ckpt:
             params = ckpt.restore(params_dir, target)

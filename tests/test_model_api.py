@@ -181,11 +181,13 @@ def test_a_likelihood_without_a_gaussian_standin_is_refused_by_kalman_type_filte
     assert bool(jnp.isfinite(result.mean).all())
 
 
-def test_kalman_filter_refuses_a_state_space_model():
+def test_kalman_filter_takes_only_a_linear_state_space_model():
     lg = linear_gaussian(2, 2)
     from csf_jax.problems.linear import to_model
+    np.testing.assert_array_equal(csf_jax.kalman_filter(jnp.zeros((3, 2)), lg=to_model(lg)).mean,
+                                  csf_jax.kalman_filter(jnp.zeros((3, 2)), lg=lg).mean)
     with pytest.raises(TypeError, match="LinearGaussian"):
-        csf_jax.kalman_filter(jnp.zeros((3, 2)), lg=to_model(lg))
+        csf_jax.kalman_filter(jnp.zeros((3, 1)), lg=problems.get("pendulum"))
 
 
 def test_driver_reports_progress_once_per_step():

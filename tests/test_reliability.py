@@ -1,4 +1,4 @@
-"""Issue 15's cases, each of which must end in a correct result or a one-line error naming the cause:
+"""Damaged and inconsistent inputs, each of which must end in a correct result or a one-line error naming the cause:
 damaged checkpoints (resume from the previous one), inconsistent model folders, a trained prior
 used for another problem or network, command-line values, mixed dtypes, non-finite observations
 under jit/vmap."""

@@ -68,6 +68,7 @@ from csf_jax.sde import (
 )
 from csf_jax.ssm import (
     StateSpaceModel,
+    check_model,
     curvature,
     is_isotropic,
     log_likelihood,
@@ -142,6 +143,7 @@ class CSFConfig:
     mixture: MixtureConfig | None = None
 
     def __post_init__(self):
+        _checks.check_fields(self)
         if self.reverse_steps < 2:
             raise ValueError(f"CSFConfig.reverse_steps must be >= 2, got {self.reverse_steps}")
         if not 0.0 < self.t_min < 1.0:
@@ -159,9 +161,6 @@ class CSFConfig:
         n = self.encode_particles
         if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 2):
             raise ValueError(f"CSFConfig.encode_particles must be None or an int >= 2, got {n!r}")
-        if self.mixture is not None and not isinstance(self.mixture, MixtureConfig):
-            raise TypeError(f"CSFConfig.mixture must be a csf_jax.MixtureConfig or None, got "
-                            f"{type(self.mixture).__name__}")
 
 
 ROBUST = CSFConfig(adaptive_inflation=False, mixture=MixtureConfig())
@@ -386,7 +385,7 @@ def _step(model: StateSpaceModel, static: CSFStatic, params, state, y, key, time
     return (post, memory), StepOutput(post.mean(0), post.std(0), post, info)
 
 
-CSF = Method("csf_jax.filter", _init, _step)
+CSF = Method("csf_jax.filter", _init, _step, label="CSF")
 
 
 def csf_filter(params, obs, ensemble, *, problem: StateSpaceModel, key,
@@ -411,8 +410,9 @@ def csf_filter(params, obs, ensemble, *, problem: StateSpaceModel, key,
       prior: the prior-score source of the ensemble component (``gaussian_prior()``,
         ``exact_mixture_prior()``); by default as for params=None above, else the learned
         prior. Not together with params.
-      network: the network config of raw ``params`` (default ``NetworkConfig()``; a
-        ``TrainedPrior`` brings its own, and a different one here is refused).
+      network: the network config of raw ``params``, required with them (a Gaussian-base and a
+        whole-score network have the same shapes); a ``TrainedPrior`` brings its own, and a
+        different one here is refused.
       config: online-stage settings (``CSFConfig``; ``csf_jax.ROBUST`` for a model CSF was not
         tuned on, docs/zoo.md).
       inputs: a time-varying model's per-step inputs (a pytree, leading axis K), or None.
@@ -420,6 +420,7 @@ def csf_filter(params, obs, ensemble, *, problem: StateSpaceModel, key,
       check_finite: when called outside jit/vmap, raise FloatingPointError if the filter diverged.
       progress: optional host callback ``k -> None`` called at the start of every filter step
         (``jax.debug.callback``; once per step under ``vmap``). For progress bars on long runs.
+        A concrete call with it also says on stderr when it compiles, and how long that took.
       shards: split the particles over this many local devices (see ``particle_sampler``); N must
         be divisible by it.
 
@@ -430,10 +431,21 @@ def csf_filter(params, obs, ensemble, *, problem: StateSpaceModel, key,
       ``(obs, ensemble, key)``; there a non-finite observation or mean is not raised but reported:
       from that step on ``finite`` is False and mean and std are NaN (``mark_nonfinite``).
     """
+    check_model(problem, CSF.name)
     if prior is not None and params is not None and prior.name != "learned":
         raise ValueError(f"csf_jax.filter: both a trained prior (params) and prior="
                          f"{prior.name!r} given; the {prior.name} prior would ignore the "
                          f"params: pass params=None with prior=, or leave prior= out")
+    if prior is not None and isinstance(params, trained.TrainedPrior):
+        raise ValueError("csf_jax.filter: both a TrainedPrior and prior= given; the TrainedPrior "
+                         "brings its own learned prior and network: leave prior= out (or pass "
+                         "its .params with network= and prior=)")
+    if params is not None and not isinstance(params, trained.TrainedPrior) and prior is None \
+            and network is None:
+        raise ValueError("csf_jax.filter: raw params need network= (the NetworkConfig they were "
+                         "trained with: a Gaussian-base and a whole-score network have the same "
+                         "shapes, so the params cannot tell); or pass the TrainedPrior whole "
+                         "(csf_jax.load_prior, csf_jax.load_pretrained)")
     params, network = trained.unpack(params, problem, network)
     prior = _prior_for(params, prior, network, config)
     n = jnp.shape(ensemble)[-2] if jnp.ndim(ensemble) >= 2 else 0

@@ -2,7 +2,9 @@
 rest.
 
     run(method, obs, state0, model=, key=, config=, params=, inputs=)
-      checks (shapes, dtypes, inf, keys, inputs), promotion to one float dtype,
+      checks (model, shapes, dtypes, inf, keys, inputs), promotion to one float dtype (at least
+      float32), then R and Q positive definite in it and drift/observe of the right shapes,
+      with progress: a line before the first compilation and its time after,
       init -> one jitted lax.scan over y_1 .. y_K:
           model bound to the step (time index k, input u_k: ``ssm.at_step``), progress callback,
           state, out = step(model_k, config, params, state, y_k, key_k, step_k)
@@ -17,6 +19,8 @@ means 'not observed' and reaches ``step`` as is: each method leaves it out of it
 from __future__ import annotations
 
 import functools
+import sys
+import time
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -25,7 +29,14 @@ import jax.numpy as jnp
 
 from csf_jax import _checks
 from csf_jax.filters.result import FilterResult, mark_nonfinite
-from csf_jax.ssm import StateSpaceModel, at_step, steps
+from csf_jax.ssm import (
+    StateSpaceModel,
+    at_step,
+    check_covariances,
+    check_dynamics,
+    check_model,
+    steps,
+)
 
 
 class StepOutput(NamedTuple):
@@ -55,6 +66,7 @@ class Method(NamedTuple):
     check: ``(model, config) -> None``, raising ValueError if the method cannot filter the model
       (a non-additive likelihood without a Gaussian stand-in, say), at the boundary.
     ensemble: whether ``state0`` is an ``(N, d)`` ensemble, checked as one.
+    label: the short name in progress lines ("CSF", "EnKF"); default ``name``.
     """
 
     name: str
@@ -62,6 +74,7 @@ class Method(NamedTuple):
     step: Callable[..., Any]
     check: Callable[[StateSpaceModel, Any], None] = lambda model, config: None
     ensemble: bool = True
+    label: str = ""
 
 
 def run(method: Method, obs, state0, *, model: StateSpaceModel, key, config=None, params=None,
@@ -71,6 +84,7 @@ def run(method: Method, obs, state0, *, model: StateSpaceModel, key, config=None
     filters); see the module docstring. ``inputs``: the per-step inputs of a time-varying model,
     a pytree whose leaves have leading axis K."""
     name = method.name
+    check_model(model, name)
     if method.ensemble:
         _checks.check_filter_inputs(obs, state0, model, name=name)
     else:
@@ -79,12 +93,49 @@ def run(method: Method, obs, state0, *, model: StateSpaceModel, key, config=None
     _checks.check_inputs(inputs, jnp.shape(obs)[0], model, name=name)
     method.check(model, config)
     obs, state0 = _checks.promote_tree(obs, state0)
-    result = mark_nonfinite(
-        _scan(method, model, config, bool(return_ensembles), progress, params, obs, state0, key,
-              inputs), obs)
+    check_covariances(model, obs.dtype, name)
+    check_dynamics(model, obs.dtype, inputs, name)
+    static = (method, model, config, bool(return_ensembles), progress)
+    args = (params, obs, state0, key, inputs)
+    if progress is not None:
+        _announce_compile(static, args)
+    result = mark_nonfinite(_scan(*static, *args), obs)
     if check_finite:
         _checks.check_result_finite(name, result)
     return result
+
+
+_COMPILED: set = set()
+
+
+def _signature(static: tuple, args: tuple):
+    """What selects one compilation of ``_scan``: the static arguments and the shapes and dtypes
+    of the traced ones."""
+    leaves, tree = jax.tree_util.tree_flatten(args)
+    return static, tree, tuple((jnp.shape(x), str(getattr(x, "dtype", type(x).__name__)))
+                               for x in leaves)
+
+
+def _announce_compile(static: tuple, args: tuple) -> None:
+    """Before the first (compiling) call of a concrete run with ``progress``: say on stderr what
+    is compiled, compile it ahead of the call (the call then reuses it), and say how long it took.
+    Silent under an outer jit/vmap (nothing is compiled here then) and for a signature seen."""
+    if not _checks.is_concrete(args):
+        return
+    sig = _signature(static, args)
+    if sig in _COMPILED:
+        return
+    method, model = static[0], static[1]
+    obs, state0 = args[1], args[2]
+    sizes = f"d={model.dim}, " + (f"N={jnp.shape(state0)[0]}, " if method.ensemble else "") + \
+        f"K={jnp.shape(obs)[0]}"
+    label = method.label or method.name
+    print(f"compiling the {label} filter ({sizes}) ...", file=sys.stderr, flush=True)
+    t0 = time.perf_counter()
+    _scan.lower(*static, *args).compile()
+    print(f"compiled the {label} filter in {time.perf_counter() - t0:.1f} s", file=sys.stderr,
+          flush=True)
+    _COMPILED.add(sig)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4))

@@ -39,7 +39,8 @@ def ensemble_kalman_filter(obs, ensemble, *, problem: StateSpaceModel, key, inpu
       return_ensembles: also return the analysis ensembles (K, N, d).
       inflation: multiplicative factor on the forecast anomalies (1.0 = none); a positive scalar.
       check_finite: raise FloatingPointError if the mean becomes non-finite (concrete runs only).
-      progress: optional host callback ``k -> None`` at every step.
+      progress: optional host callback ``k -> None`` at every step (and a line on stderr around
+        the first compilation).
 
     Returns:
       ``FilterResult(mean (K, d), std (K, d), ensembles (K, N, d) | None, ess=None, finite (K,))``,
@@ -114,4 +115,4 @@ def check_standin(name: str):
 
 
 ENSEMBLE_KALMAN_FILTER = Method("ensemble_kalman_filter", _init, _step,
-                                check_standin("ensemble_kalman_filter"))
+                                check_standin("ensemble_kalman_filter"), label="EnKF")

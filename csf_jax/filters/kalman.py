@@ -16,15 +16,18 @@ import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 
+from csf_jax import _checks
 from csf_jax.filters.driver import Method, StepOutput, run
 from csf_jax.filters.result import FilterResult
-from csf_jax.problems.linear import LinearGaussian, to_model
+from csf_jax.problems.linear import LinearGaussian, linear_source, to_model
 from csf_jax.ssm import StateSpaceModel
 
 
-def kalman_filter(obs, *, lg: LinearGaussian, progress=None) -> FilterResult:
+def kalman_filter(obs, *, lg: LinearGaussian | StateSpaceModel, progress=None) -> FilterResult:
     """Filtered means and stds of ``x_1 .. x_K`` given ``obs (K, m) = y_1 .. y_K`` (NaN: missing).
 
+    lg: the ``LinearGaussian`` (``csf_jax.problems.linear.linear_gaussian``), or the
+      ``StateSpaceModel`` that ``to_model`` made of one (what the ensemble filters take).
     Returns ``FilterResult(mean (K, d), std (K, d), finite (K,))`` with
     ``std = sqrt(diag(P_{k|k}))``; no ensembles, no ESS. Use ``kalman_filter_cov`` for the full
     covariances.
@@ -33,23 +36,34 @@ def kalman_filter(obs, *, lg: LinearGaussian, progress=None) -> FilterResult:
     return result._replace(info=None)
 
 
-def kalman_filter_cov(obs, lg: LinearGaussian):
+def kalman_filter_cov(obs, lg: LinearGaussian | StateSpaceModel):
     """Filtered means ``(K, d)`` and covariances ``(K, d, d)`` of ``x_1 .. x_K``."""
     result = _run(obs, lg, None, check_finite=False)
     return result.mean, result.info["cov"]
 
 
-def _run(obs, lg, progress, check_finite: bool = False) -> FilterResult:
+def as_linear_gaussian(lg, name: str = "kalman_filter") -> LinearGaussian:
+    """``lg`` itself if a ``LinearGaussian``; for a ``StateSpaceModel`` made by ``to_model``, the
+    ``LinearGaussian`` it came from; else a TypeError saying what is expected."""
+    if isinstance(lg, LinearGaussian):
+        return lg
     if isinstance(lg, StateSpaceModel):
-        raise TypeError("kalman_filter: lg must be a LinearGaussian, not a StateSpaceModel (it "
-                        "has no matrices to read); build the model with "
-                        "csf_jax.problems.linear.linear_gaussian(...), pass that here and "
-                        "to_model(lg) to the ensemble filters")
-    if not isinstance(lg, LinearGaussian):
-        raise TypeError(f"kalman_filter: lg must be a LinearGaussian (csf_jax.problems.linear."
-                        f"linear_gaussian), got {type(lg).__name__}")
+        source = linear_source(lg)
+        if source is None:
+            raise TypeError(f"{name}: lg={lg.name!r} is a StateSpaceModel not made by "
+                            f"to_model(linear_gaussian(...)), so it has no matrices to read; pass "
+                            f"the LinearGaussian (csf_jax.problems.linear.linear_gaussian) or "
+                            f"to_model of one")
+        return source
+    raise TypeError(f"{name}: lg must be a LinearGaussian (csf_jax.problems.linear."
+                    f"linear_gaussian) or to_model of one, got {type(lg).__name__}")
+
+
+def _run(obs, lg, progress, check_finite: bool = False) -> FilterResult:
+    lg = as_linear_gaussian(lg)
     obs = jnp.asarray(obs)
-    dtype = obs.dtype if jnp.issubdtype(obs.dtype, jnp.floating) else jnp.float32
+    dtype = _checks.compute_dtype(obs.dtype) if jnp.issubdtype(obs.dtype, jnp.floating) \
+        else jnp.float32
     params = tuple(jnp.asarray(a, dtype) for a in (lg.A, lg.H, lg.process_cov(), lg.obs_cov()))
     state0 = (jnp.asarray(lg.m0, dtype), jnp.asarray(lg.p0_std, dtype) ** 2
               * jnp.eye(lg.dim, dtype=dtype))
@@ -82,4 +96,4 @@ def _step(model, config, params, state, y, key, time):
     return (mean, cov), StepOutput(mean, std, None, {"cov": cov})
 
 
-KALMAN = Method("kalman_filter", _init, _step, ensemble=False)
+KALMAN = Method("kalman_filter", _init, _step, ensemble=False, label="Kalman")

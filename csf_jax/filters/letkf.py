@@ -25,10 +25,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from csf_jax import _checks
 from csf_jax.filters.driver import Method, StepOutput, run
 from csf_jax.filters.enkf import check_standin
 from csf_jax.filters.result import FilterResult
-from csf_jax.ssm import StateSpaceModel, gaussian_standin, is_additive, observed, propagate
+from csf_jax.ssm import (
+    StateSpaceModel,
+    check_model,
+    gaussian_standin,
+    is_additive,
+    observed,
+    propagate,
+)
 
 
 class Localization(NamedTuple):
@@ -44,9 +52,104 @@ class Localization(NamedTuple):
 
 
 def ring_localization(dim: int, obs_sites) -> Localization:
-    """Sites ``0 .. d-1`` on a ring of length d; observations at ``obs_sites (m,)``."""
-    return Localization(tuple(float(i) for i in range(dim)),
-                        tuple(float(i) for i in np.asarray(obs_sites)), float(dim))
+    """Sites ``0 .. d-1`` on a ring of length d; observations at ``obs_sites (m,)``, the site each
+    observation reads, in the order of the observation vector."""
+    if isinstance(dim, (bool, np.bool_)) or not isinstance(dim, (int, np.integer)) or dim < 1:
+        raise ValueError(f"ring_localization: dim must be a positive int, got {dim!r}")
+    try:
+        sites = np.asarray(list(obs_sites) if isinstance(obs_sites, range) else obs_sites,
+                           np.float64)
+    except (TypeError, ValueError):
+        sites = None
+    if sites is None or sites.ndim != 1 or not np.isfinite(sites).all():
+        raise ValueError(f"ring_localization: obs_sites must be a 1-D sequence of finite site "
+                         f"positions, got {obs_sites!r:.60}")
+    return Localization(tuple(float(i) for i in range(dim)), tuple(sites.tolist()), float(dim))
+
+
+def _probe(model: StateSpaceModel):
+    """A concrete state to probe the sensor at (works while the filter's inputs are traced)."""
+    with jax.ensure_compile_time_eval():
+        return model.initial_ensemble(jax.random.key(0), 1)[0]
+
+
+def _sensor_slopes(model: StateSpaceModel, probe, direction) -> tuple[np.ndarray, np.ndarray]:
+    """``(J 1, J v)`` at ``probe (d,)`` for the sensor's Jacobian J: both ``(m,)``."""
+    with jax.ensure_compile_time_eval():
+        probe = jnp.asarray(probe, jnp.float32)
+        _, slope = jax.jvp(model.observe, (probe,), (jnp.ones_like(probe),))
+        _, along = jax.jvp(model.observe, (probe,), (jnp.asarray(direction, jnp.float32),))
+    return np.asarray(slope, np.float64), np.asarray(along, np.float64)
+
+
+def is_point_sensor(model: StateSpaceModel, sites: np.ndarray, probe) -> bool:
+    """Whether observation j depends on state site ``sites[j]`` alone at ``probe (d,)``: ``J v =
+    (J 1) v[sites]`` for a random ``v`` (two Jacobian-vector products)."""
+    v = np.random.default_rng(0).standard_normal(model.dim).astype(np.float32)
+    slope, along = _sensor_slopes(model, probe, v)
+    return bool(np.allclose(along, slope * v[sites], rtol=1e-4, atol=1e-5))
+
+
+def sensor_sites(model: StateSpaceModel, probe) -> np.ndarray | None:
+    """The state site ``(m,)`` int each observation reads if ``model.observe`` is a point sensor
+    (observation j a function of one site; found with a ramp ``v_i = 1 + i / d``: ``J v / J 1``
+    is ``v`` at the site), else None (a sensor that mixes sites, or one flat at the probe)."""
+    d = model.dim
+    ramp = 1.0 + np.arange(d) / d
+    slope, along = _sensor_slopes(model, probe, ramp)
+    if slope.shape != (model.obs_dim,) or not (np.abs(slope) > 1e-6).all():
+        return None
+    sites = np.rint((along / slope - 1.0) * d).astype(np.int64)
+    if np.any(sites < 0) or np.any(sites >= d) or not is_point_sensor(model, sites, probe):
+        return None
+    return sites.astype(np.int32)
+
+
+def check_localization(model: StateSpaceModel, localization, name: str, *,
+                       points: bool = False) -> np.ndarray | None:
+    """Check ``localization`` against ``model`` at the boundary; returns the observations' sites
+    ``(m,)`` where the sensor is a point sensor (else None).
+
+    Always: a ``Localization`` with the model's d sites and m observations. Where
+    ``model.observe`` reads one site per observation, each observation's position must be its
+    site's (``ring_localization(d, sites)`` in the sensor's order; a reversed or shifted list is
+    refused). With ``points`` (the local CSF): the sensor must be such a point sensor, on the ring
+    of d sites. A time-varying sensor is not probed."""
+    if not isinstance(localization, Localization):
+        raise TypeError(f"{name}: localization must be a csf_jax.Localization (e.g. "
+                        f"csf_jax.ring_localization(d, sites)), got {type(localization).__name__}")
+    d, m = model.dim, model.obs_dim
+    if points and (localization.period is None or float(localization.period) != float(d)
+                   or tuple(localization.state) != tuple(float(i) for i in range(d))):
+        raise ValueError(f"{name}: needs the ring of d={d} sites (csf_jax.ring_localization)")
+    if len(localization.state) != d or len(localization.obs) != m:
+        raise ValueError(f"{name}: the localization has {len(localization.state)} sites and "
+                         f"{len(localization.obs)} observations; the model has d={d}, m={m}")
+    placed = np.asarray(localization.obs, np.float64)
+    if points and (np.any(placed != np.round(placed)) or np.any(placed < 0)
+                   or np.any(placed >= d)):
+        raise ValueError(f"{name}: the localization's {m} observation positions must be integer "
+                         f"sites in [0, {d}), one per observation")
+    if model.time_varying:
+        return None
+    sites = sensor_sites(model, _probe(model))
+    if sites is None:
+        if points:
+            raise ValueError(f"{name}: model.observe is not a point sensor at the localization's "
+                             f"observation sites (observation j must depend on site obs[j] only)")
+        return None
+    where = np.asarray(localization.state, np.float64)[sites]
+    gap = np.abs(where - placed)
+    if localization.period is not None:
+        gap = np.minimum(gap, float(localization.period) - gap)
+    wrong = np.flatnonzero(gap > 1e-6)
+    if wrong.size:
+        j = int(wrong[0])
+        raise ValueError(f"{name}: observation {j} reads state site {int(sites[j])} (position "
+                         f"{where[j]:g}), but the localization places it at {placed[j]:g} "
+                         f"({wrong.size} of {m} misplaced); give the sites in the sensor's order: "
+                         f"ring_localization(d, sites) with sites[j] the site observation j reads")
+    return sites
 
 
 def gaspari_cohn(r):
@@ -87,9 +190,7 @@ class LETKFConfig:
     inflation: float = 1.05
 
     def __post_init__(self):
-        if not self.radius > 0 or not self.inflation > 0:
-            raise ValueError(f"LETKFConfig needs radius > 0 and inflation > 0, got {self.radius}, "
-                             f"{self.inflation}")
+        _checks.check_fields(self, positive=("radius", "inflation"))
 
 
 def letkf_analysis(forecast, y, model: StateSpaceModel, index, weight):
@@ -144,18 +245,13 @@ def _step(model: StateSpaceModel, static: LETKFStatic, inflation, ensemble, y, k
 
 
 def _check(model: StateSpaceModel, static: LETKFStatic) -> None:
-    loc = static.localization
-    if len(loc.state) != model.dim or len(loc.obs) != model.obs_dim:
-        raise ValueError(f"letkf: the localization has {len(loc.state)} sites and "
-                         f"{len(loc.obs)} observations; the model has d={model.dim}, "
-                         f"m={model.obs_dim}")
     if is_additive(model) and model.obs_noise.covariance is not None:
         raise ValueError("letkf: needs uncorrelated observation noise (R-localisation divides by "
                          "each observation's variance)")
     check_standin("letkf")(model, static)
 
 
-LETKF = Method("letkf", _init, _step, _check)
+LETKF = Method("letkf", _init, _step, _check, label="LETKF")
 
 
 def letkf(obs, ensemble, *, problem: StateSpaceModel, key, localization: Localization,
@@ -172,12 +268,12 @@ def letkf(obs, ensemble, *, problem: StateSpaceModel, key, localization: Localiz
       inputs: a time-varying model's per-step inputs (leading axis K), or None.
       return_ensembles: also return the (K, N, d) analysis ensembles.
       check_finite: raise FloatingPointError on a non-finite mean (concrete runs only).
-      progress: optional host callback ``k -> None`` at every step.
+      progress: optional host callback ``k -> None`` at every step (and a line on stderr around
+        the first compilation).
     Returns ``FilterResult(mean (K, d), std (K, d), ensembles | None, finite (K,))``.
     """
-    if not isinstance(localization, Localization):
-        raise TypeError(f"letkf: localization must be a csf_jax.Localization (e.g. "
-                        f"csf_jax.ring_localization(d, sites)), got {type(localization).__name__}")
+    check_model(problem, "letkf")
+    check_localization(problem, localization, "letkf")
     return run(LETKF, obs, ensemble, model=problem, key=key,
                config=LETKFStatic(float(config.radius), localization),
                params=jnp.asarray(config.inflation), inputs=inputs,

@@ -43,11 +43,10 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-from csf_jax import _linalg
+from csf_jax import _checks, _linalg
 from csf_jax.filters.driver import Method, StepOutput, run
-from csf_jax.filters.letkf import Localization
+from csf_jax.filters.letkf import Localization, check_localization
 from csf_jax.filters.result import FilterResult
 from csf_jax.local_prior import (
     LocalStats,
@@ -59,6 +58,7 @@ from csf_jax.local_prior import (
 from csf_jax.sde import bridge, marginal_std_host, noise_levels
 from csf_jax.ssm import (
     StateSpaceModel,
+    check_model,
     is_additive,
     log_likelihood,
     observed,
@@ -105,6 +105,7 @@ class LocalCSFConfig:
     sampler: str = "flow"
 
     def __post_init__(self):
+        _checks.check_fields(self)
         for name in ("half_width", "cg_iterations", "block", "top_iterations"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -337,40 +338,7 @@ def _check(model: StateSpaceModel, config: LocalCSFConfig) -> None:
                          f"alternate in two colours around the ring")
 
 
-LOCAL_CSF = Method("local_filter", _init, _step, _check)
-
-
-def _probe(model: StateSpaceModel):
-    """A concrete state to probe the sensor at (works while the filter's inputs are traced)."""
-    with jax.ensure_compile_time_eval():
-        return model.initial_ensemble(jax.random.key(0), 1)[0]
-
-
-def point_sites(model: StateSpaceModel, localization: Localization, probe) -> np.ndarray:
-    """The site of every observation, checked: ``localization`` must be the ring of the model's
-    d sites (``ring_localization``), its observation positions integer sites, and ``model.observe``
-    a point sensor there (observation j depends on site ``s_j`` only; probed at ``probe (d,)``)."""
-    d = model.dim
-    if localization.period is None or float(localization.period) != float(d) \
-            or tuple(localization.state) != tuple(float(i) for i in range(d)):
-        raise ValueError(f"local_filter: needs the ring of d={d} sites (csf_jax.ring_localization)")
-    obs = np.asarray(localization.obs, np.float64)
-    if obs.shape != (model.obs_dim,) or np.any(obs != np.round(obs)) or np.any(obs < 0) \
-            or np.any(obs >= d):
-        raise ValueError(f"local_filter: the localization's {obs.shape[0]} observation positions "
-                         f"must be integer sites in [0, {d}), one per observation "
-                         f"(m={model.obs_dim})")
-    sites = obs.astype(np.int32)
-    v = np.random.default_rng(0).standard_normal(d).astype(np.float32)
-    with jax.ensure_compile_time_eval():
-        probe = jnp.asarray(probe, jnp.float32)
-        _, slope = jax.jvp(model.observe, (probe,), (jnp.ones_like(probe),))
-        _, along = jax.jvp(model.observe, (probe,), (jnp.asarray(v),))
-    if not np.allclose(np.asarray(along), np.asarray(slope) * v[sites], rtol=1e-4,
-                       atol=1e-5):
-        raise ValueError("local_filter: model.observe is not a point sensor at the localization's "
-                         "observation sites (observation j must depend on site obs[j] only)")
-    return sites
+LOCAL_CSF = Method("local_filter", _init, _step, _check, label="local CSF")
 
 
 def local_filter(obs, ensemble, *, problem: StateSpaceModel, key,
@@ -386,15 +354,14 @@ def local_filter(obs, ensemble, *, problem: StateSpaceModel, key,
       localization: ``csf_jax.ring_localization(d, obs_sites)``.
       config: ``LocalCSFConfig``.  return_ensembles: also return the (K, N, d) ensembles.
       check_finite: raise FloatingPointError on a non-finite mean (concrete runs only).
-      progress: optional host callback ``k -> None`` at every filter step.
+      progress: optional host callback ``k -> None`` at every filter step (and a line on
+        stderr around the first compilation).
     Returns ``FilterResult(mean (K, d), std (K, d), ensembles | None, finite (K,))``; jit-able
     (bind the keywords statically) and vmap-able over ``(obs, ensemble, key)``.
     """
-    if not isinstance(localization, Localization):
-        raise TypeError(f"local_filter: localization must be a csf_jax.Localization (e.g. "
-                        f"csf_jax.ring_localization(d, sites)), got {type(localization).__name__}")
+    check_model(problem, "local_filter")
     _check(problem, config)
-    sites = point_sites(problem, localization, _probe(problem))
+    sites = check_localization(problem, localization, "local_filter", points=True)
     return run(LOCAL_CSF, obs, ensemble, model=problem, key=key, config=config,
                params=jnp.asarray(sites), return_ensembles=return_ensembles,
                check_finite=check_finite, progress=progress)

@@ -32,7 +32,8 @@ def particle_filter(obs, ensemble, *, problem: StateSpaceModel, key, inputs=None
       inputs: a time-varying model's per-step inputs (leading axis K), or None.
       return_ensembles: also return the resampled posterior ensembles (K, N, d).
       check_finite: raise FloatingPointError if the mean becomes non-finite (concrete runs only).
-      progress: optional host callback ``k -> None`` at every step.
+      progress: optional host callback ``k -> None`` at every step (and a line on stderr around
+        the first compilation).
 
     Returns:
       ``FilterResult(mean (K, d), std (K, d), ensembles (K, N, d) | None, ess (K,), finite (K,))``;
@@ -107,4 +108,4 @@ def _step(model: StateSpaceModel, config, params, ensemble, y, key, time):
                                       {"ess": effective_sample_size(step.log_weights)})
 
 
-PARTICLE_FILTER = Method("particle_filter", _init, _step)
+PARTICLE_FILTER = Method("particle_filter", _init, _step, label="particle")

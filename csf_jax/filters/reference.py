@@ -139,7 +139,7 @@ def _check(model: StateSpaceModel, config: ReferenceConfig) -> None:
                          f"{config.particles} and {config.shock_draws}")
 
 
-REFERENCE = Method("reference_filter", _init, _step, _check)
+REFERENCE = Method("reference_filter", _init, _step, _check, label="reference")
 
 
 def _candidate_weights(share, ll0, ll1):

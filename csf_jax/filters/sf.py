@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from csf_jax import networks
+from csf_jax import _checks, networks
 from csf_jax.dsm import dsm_fit
 from csf_jax.filters.csf import CSFConfig, particle_sampler, sampler_start
 from csf_jax.filters.driver import Method, StepOutput, run
@@ -46,6 +46,7 @@ class SFConfig:
     network: networks.NetworkConfig = networks.NetworkConfig()
 
     def __post_init__(self):
+        _checks.check_fields(self)
         for name in ("train_steps", "warmup_steps", "batch"):
             value = getattr(self, name)
             if not isinstance(value, int) or value < (0 if name == "warmup_steps" else 1):
@@ -110,7 +111,7 @@ def _check(model: StateSpaceModel, static: SFStatic) -> None:
                          f"equal the sampler's sigma_max ({static.sampler.sigma_max})")
 
 
-SCORE_FILTER = Method("score_filter", _init, _step, _check)
+SCORE_FILTER = Method("score_filter", _init, _step, _check, label="SF")
 
 
 def score_filter(obs, ensemble, *, problem: StateSpaceModel, key, config: SFConfig = SFConfig(),
@@ -133,7 +134,8 @@ def score_filter(obs, ensemble, *, problem: StateSpaceModel, key, config: SFConf
       return_ensembles: also return the (K, N, d) posterior ensembles.
       check_finite: when called outside jit/vmap, raise FloatingPointError if the filter diverged.
       progress: optional host callback ``k -> None`` called at the start of every filter step
-        (``jax.debug.callback``; once per step under ``vmap``).
+        (``jax.debug.callback``; once per step under ``vmap``); a concrete call with it also
+        says on stderr when it compiles, and how long that took.
       shards: split each training batch over this many local devices (``dsm_fit``; it must divide
         ``config.batch``): the same filter up to float summation order, one run on several
         devices (on a CPU with one XLA host device per core, ``experiments.run`` does this for a

@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from csf_jax import _checks
 from csf_jax.ssm import (
     StateSpaceModel,
     cauchy_noise,
@@ -51,6 +52,7 @@ class CubicConfig:
     shock_size: float = 1.0
 
     def __post_init__(self):
+        _checks.check_fields(self)
         if self.noise not in ("gaussian", "cauchy"):
             raise ValueError(f"CubicConfig.noise must be 'gaussian' or 'cauchy', got {self.noise!r}")
         if self.dim < 1 or self.num_steps < 1 or self.shock_count < 0:

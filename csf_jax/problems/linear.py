@@ -95,8 +95,14 @@ def linear_gaussian(dim: int = 2, obs_dim: int | None = None, *, q_std: float = 
     is not trivially zero. Pass ``A`` (d, d), ``H`` (m, d) or ``m0`` (d,) to override, and ``Q``
     (d, d) or ``R`` (m, m) for correlated noise (symmetric positive definite).
     """
+    for label, v in (("dim", dim), ("obs_dim", obs_dim), ("num_steps", num_steps)):
+        if v is not None and (isinstance(v, (bool, np.bool_))
+                              or not isinstance(v, (int, np.integer)) or v < 1):
+            raise ValueError(f"linear_gaussian: {label} must be a positive int, got {v!r}")
     A = rotation_decay(dim, radius, angle) if A is None else A
     A = np.array(A, dtype=np.float64)
+    if not np.isfinite(A).all():
+        raise ValueError("linear_gaussian: A has non-finite entries")
     if A.shape != (dim, dim):
         raise ValueError(f"linear_gaussian: A must have shape ({dim}, {dim}), got {A.shape}")
     obs_dim = dim if obs_dim is None else int(obs_dim)
@@ -108,8 +114,12 @@ def linear_gaussian(dim: int = 2, obs_dim: int | None = None, *, q_std: float = 
     m0 = np.array(m0, dtype=np.float64)
     if m0.shape != (dim,):
         raise ValueError(f"linear_gaussian: m0 must have shape ({dim},), got {m0.shape}")
+    if not (np.isfinite(H).all() and np.isfinite(m0).all()):
+        raise ValueError("linear_gaussian: H and m0 must be finite")
     for label, v in (("q_std", q_std), ("r_std", r_std), ("p0_std", p0_std)):
-        if not (np.isfinite(v) and v > 0):
+        number = isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(
+            v, (bool, np.bool_))
+        if not (number and np.isfinite(v) and v > 0):
             raise ValueError(f"linear_gaussian: {label} must be positive and finite, got {v}")
     for arr in (A, H, m0):
         arr.setflags(write=False)
@@ -137,10 +147,26 @@ def to_model(lg: LinearGaussian) -> StateSpaceModel:
     The cache is keyed on the parameter values (arrays as tuples of floats), so repeated calls
     return one model and a jitted filter compiles once per model.
     """
-    return _build_model(_as_tuple(lg.A), _as_tuple(lg.H), float(lg.q_std), float(lg.r_std),
-                        _as_tuple(lg.m0), float(lg.p0_std), int(lg.num_steps), str(lg.name),
-                        None if lg.Q is None else _as_tuple(lg.Q),
-                        None if lg.R is None else _as_tuple(lg.R))
+    model = _build_model(_as_tuple(lg.A), _as_tuple(lg.H), float(lg.q_std), float(lg.r_std),
+                         _as_tuple(lg.m0), float(lg.p0_std), int(lg.num_steps), str(lg.name),
+                         None if lg.Q is None else _as_tuple(lg.Q),
+                         None if lg.R is None else _as_tuple(lg.R))
+    _SOURCES.setdefault(model, lg)
+    return model
+
+
+# The LinearGaussian behind each model ``to_model`` made (its models are cached, so this is
+# bounded by the distinct parameter sets used).
+_SOURCES: dict = {}
+
+
+def linear_source(model: StateSpaceModel) -> LinearGaussian | None:
+    """The ``LinearGaussian`` that ``to_model`` made ``model`` from, or None for any other model
+    (a model edited with ``_replace`` is another model)."""
+    try:
+        return _SOURCES.get(model)
+    except TypeError:  # an unhashable model is no to_model model
+        return None
 
 
 @functools.cache

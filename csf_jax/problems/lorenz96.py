@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from csf_jax import _checks
 from csf_jax.ssm import StateSpaceModel, gaussian_noise
 
 SENSORS = ("identity", "every", "arctan")
@@ -55,6 +56,7 @@ class Lorenz96Config:
     spinup_steps: int = 1000
 
     def __post_init__(self):
+        _checks.check_fields(self)
         if self.sensor not in SENSORS:
             raise ValueError(f"Lorenz96Config.sensor must be one of {SENSORS}, got {self.sensor!r}")
         if self.dim < 4:

@@ -19,6 +19,7 @@ import math
 
 import jax
 
+from csf_jax import _checks
 from csf_jax.ssm import (
     StateSpaceModel,
     gaussian_noise,
@@ -61,6 +62,7 @@ class WellConfig:
     shock_size: float | None = None
 
     def __post_init__(self):
+        _checks.check_fields(self)
         if self.wells not in ("double", "triple"):
             raise ValueError(f"WellConfig.wells must be 'double' or 'triple', got {self.wells!r}")
         for name in ("dt", "process_std", "obs_std", "x0_std"):

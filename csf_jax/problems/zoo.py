@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from csf_jax import _checks
 from csf_jax.problems.linear import linear_gaussian, to_model
 from csf_jax.problems.lorenz96 import rk4
 from csf_jax.ssm import (
@@ -54,6 +55,20 @@ def _gaussian_start(mean, std):
     return truth, ensemble
 
 
+def _numbers(config, field: str, shape: tuple, positive: bool = False) -> None:
+    """Refuse a tuple field that is not finite numbers of ``shape`` (positive ones if asked)."""
+    value = getattr(config, field)
+    try:
+        arr = np.asarray(value, np.float64)
+    except (TypeError, ValueError):
+        arr = None
+    if arr is None or arr.shape != shape or not np.isfinite(arr).all() \
+            or (positive and not (arr > 0).all()):
+        what = "positive" if positive else "finite"
+        raise ValueError(f"{type(config).__name__}.{field} must hold {what} numbers of shape "
+                         f"{shape}, got {value!r}")
+
+
 @dataclasses.dataclass(frozen=True)
 class PendulumConfig:
     """The README's pendulum: ``x = (angle, rate)``, explicit Euler step ``dt``, angle observed."""
@@ -62,6 +77,10 @@ class PendulumConfig:
     process_std: float = 0.1
     obs_std: float = 0.1
     num_steps: int = 50
+
+    def __post_init__(self):
+        _checks.check_fields(self, positive=("dt", "obs_std", "num_steps"),
+                             nonnegative=("process_std",))
 
 
 @functools.cache
@@ -84,6 +103,10 @@ class Lorenz63Config:
     obs_std: float = 1.0
     init_std: float = 2.0
     num_steps: int = 200
+
+    def __post_init__(self):
+        _checks.check_fields(self, positive=("dt", "substeps", "obs_std", "init_std", "num_steps"),
+                             nonnegative=("process_std",))
 
 
 def lorenz63_tendency(x):
@@ -118,6 +141,15 @@ class BearingsConfig:
     start_std: tuple = (1.0, 1.0, 0.05, 0.05)
     num_steps: int = 60
 
+    def __post_init__(self):
+        _checks.check_fields(self, positive=("dt", "position_std", "velocity_std", "obs_std",
+                                             "num_steps"))
+        _numbers(self, "sensors", (len(self.sensors), 2))
+        if not self.sensors:
+            raise ValueError("BearingsConfig.sensors must hold at least one (x, y) sensor")
+        _numbers(self, "start", (4,))
+        _numbers(self, "start_std", (4,), positive=True)
+
 
 @functools.cache
 def bearings(c: BearingsConfig = BearingsConfig()) -> StateSpaceModel:
@@ -150,6 +182,11 @@ class FoldingConfig:
     start_std: float = 0.5
     num_steps: int = 100
 
+    def __post_init__(self):
+        _checks.check_fields(self, positive=("obs_std", "start_std", "num_steps"),
+                             nonnegative=("process_std",))
+        _numbers(self, "start", (3,))
+
 
 def _axis_rotation(angle: float) -> np.ndarray:
     """Rotation by ``angle`` about the unit axis (1, 1, 1) / sqrt(3) (Rodrigues)."""
@@ -180,6 +217,10 @@ class UNGMConfig:
     init_var: float = 5.0
     num_steps: int = 100
 
+    def __post_init__(self):
+        _checks.check_fields(self, positive=("obs_var", "init_var", "num_steps"),
+                             nonnegative=("process_var",))
+
 
 @functools.cache
 def ungm(c: UNGMConfig = UNGMConfig()) -> StateSpaceModel:
@@ -204,6 +245,12 @@ class VolatilityConfig:
     sigma: float = 0.3
     num_steps: int = 200
 
+    def __post_init__(self):
+        _checks.check_fields(self, positive=("sigma", "num_steps"))
+        if not abs(self.phi) < 1:
+            raise ValueError(f"VolatilityConfig.phi must lie in (-1, 1) (a stationary AR(1)), got "
+                             f"{self.phi!r}")
+
 
 @functools.cache
 def stochastic_volatility(c: VolatilityConfig = VolatilityConfig()) -> StateSpaceModel:
@@ -223,6 +270,12 @@ class PoissonConfig:
     process_std: float = 0.3
     level: float = 1.0
     num_steps: int = 100
+
+    def __post_init__(self):
+        _checks.check_fields(self, positive=("process_std", "num_steps"))
+        if not 0 <= self.radius < 1:
+            raise ValueError(f"PoissonConfig.radius must lie in [0, 1) (a stationary process), got "
+                             f"{self.radius!r}")
 
 
 @functools.cache
@@ -248,6 +301,9 @@ class Linear20Config:
     q_std: float = 0.3
     r_std: float = 0.5
     num_steps: int = 100
+
+    def __post_init__(self):
+        _checks.check_fields(self, positive=("dim", "q_std", "r_std", "num_steps"))
 
 
 @functools.cache

@@ -18,8 +18,15 @@ from collections.abc import Callable
 import jax
 import orbax.checkpoint as ocp
 
+from csf_jax import _store
+
 # The fields of ``meta`` that must agree for a checkpoint to be resumed or used.
 IDENTITY = ("problem", "dim", "network", "dataset_id", "seed")
+
+# The training-config fields (``meta["train"]``) that may differ on resume: the run's length (a
+# longer run continues the shorter one), the checkpoint and validation intervals, and the seed
+# (compared in IDENTITY). Every other one changes the parameters a run makes.
+RESUMABLE = ("steps", "save_every", "eval_every", "seed")
 
 
 def manager(directory: str, save_every: int, keep: int = 2) -> ocp.CheckpointManager:
@@ -46,18 +53,33 @@ def read_meta(mngr: ocp.CheckpointManager, step: int | None = None) -> dict | No
 
 
 class CheckpointMismatch(ValueError):
-    """An intact checkpoint made for another problem, network, dataset or seed."""
+    """An intact checkpoint made for another problem, network, dataset, seed or training
+    config."""
+
+
+def identity_diffs(found: dict, expected: dict) -> list[str]:
+    """``field: checkpoint has X, requested Y`` for every ``IDENTITY`` field and every training
+    setting outside ``RESUMABLE`` that both meta records hold and on which they differ (a record
+    without ``train`` is compared on IDENTITY alone)."""
+    diffs = [f"{k}: checkpoint has {found.get(k)!r}, requested {expected.get(k)!r}"
+             for k in IDENTITY if found.get(k) != expected.get(k)]
+    old, new = found.get("train"), expected.get("train")
+    if isinstance(old, dict) and isinstance(new, dict):
+        diffs += [f"train.{k}: checkpoint has {old.get(k)!r}, requested {new.get(k)!r}"
+                  for k in sorted(set(old) & set(new))
+                  if k not in RESUMABLE and old.get(k) != new.get(k)]
+    return diffs
 
 
 def check_identity(found: dict, expected: dict, where: str) -> None:
     """Raise CheckpointMismatch (a ValueError) naming both sides if ``found`` was made for
-    something else."""
-    diffs = [k for k in IDENTITY if found.get(k) != expected.get(k)]
+    something else (``identity_diffs``)."""
+    diffs = identity_diffs(found, expected)
     if diffs:
-        lines = "; ".join(f"{k}: checkpoint has {found.get(k)!r}, requested {expected.get(k)!r}"
-                          for k in diffs)
-        raise CheckpointMismatch(f"checkpoint {where} does not match the requested run ({lines}). Use "
-                         f"another --out directory, or the matching configuration.")
+        folder = os.path.dirname(os.path.abspath(where))
+        raise CheckpointMismatch(f"checkpoint {where} does not match the requested run "
+                                 f"({'; '.join(diffs)}). Use another directory (or delete "
+                                 f"{folder} to train afresh), or the matching configuration.")
 
 
 def restore(mngr: ocp.CheckpointManager, abstract_state, step: int | None = None):
@@ -88,6 +110,9 @@ def _try_restore(mngr: ocp.CheckpointManager, abstract_state, step: int, expecte
     if not isinstance(found, dict):
         return None, None, f"its meta record is not a JSON object: {found!r:.60}"
     check_identity(found, expected, where)
+    damage = _store.damaged_array(os.path.join(where, "state"))
+    if damage is not None:
+        return None, None, f"its state cannot be read: {damage}"
     try:
         state, meta = restore(mngr, abstract_state, step)
     except Exception as e:  # noqa: BLE001

@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from csf_jax import problems
+from csf_jax import _checks, problems
 from csf_jax.filters.pf import sir_step
 from csf_jax.ssm import at_step, simulate, steps
 from csf_jax.trained import model_fingerprint
@@ -54,9 +54,13 @@ class DatasetConfig:
     dtype: str = "float16"
 
     def __post_init__(self):
+        _checks.check_fields(self)
         for f in ("trajectories", "particles", "keep", "stride", "chunk"):
             if getattr(self, f) < 1:
                 raise ValueError(f"DatasetConfig.{f} must be >= 1, got {getattr(self, f)}")
+        if self.trajectories < 2:
+            raise ValueError(f"DatasetConfig.trajectories must be >= 2 (training holds out at "
+                             f"least one for validation), got {self.trajectories}")
         if self.keep > self.particles:
             raise ValueError(f"DatasetConfig.keep ({self.keep}) cannot exceed particles "
                              f"({self.particles})")
@@ -112,6 +116,7 @@ def generate(problem, config: DatasetConfig, directory: str, *, verbose: bool = 
     """
     model = problems.get(problem) if isinstance(problem, str) else problem
     name = problem if isinstance(problem, str) else model.name
+    _checks.check_folder(directory, f"dataset {directory}", writable=True)
     os.makedirs(directory, exist_ok=True)
     path = os.path.join(directory, "ensembles.npy")
     meta_path = os.path.join(directory, "meta.json")
@@ -121,12 +126,12 @@ def generate(problem, config: DatasetConfig, directory: str, *, verbose: bool = 
     meta = {"problem": name, "dataset": dataclasses.asdict(config), "id": ident,
             "shape": list(shape), "chunks_done": 0}
     if os.path.exists(meta_path) and os.path.exists(path):
-        with open(meta_path) as f:
-            old = json.load(f)
+        old = read_meta(directory)
         if old.get("id") != ident:
             raise ValueError(f"{directory} holds dataset {old.get('id')} ({old.get('problem')}, "
                              f"{old.get('dataset')}), not {ident} ({name}, "
                              f"{dataclasses.asdict(config)}); use another directory")
+        check_array_file(path, shape, np.dtype(config.dtype), directory)
         meta = old
         data = np.lib.format.open_memmap(path, mode="r+")
     else:
@@ -142,7 +147,7 @@ def generate(problem, config: DatasetConfig, directory: str, *, verbose: bool = 
         ks = keys[lo:hi]
         if hi - lo < config.chunk:  # pad the last chunk to keep one compiled shape
             ks = jnp.concatenate([ks, keys[: config.chunk - (hi - lo)]])
-        data[lo:hi] = np.asarray(batch(ks)[: hi - lo], dtype=data.dtype)
+        data[lo:hi] = finite_chunk(np.asarray(batch(ks)[: hi - lo]), data.dtype, name, lo, hi)
         data.flush()
         meta["chunks_done"] = c + 1
         _atomic_json(meta_path, meta)
@@ -153,6 +158,66 @@ def generate(problem, config: DatasetConfig, directory: str, *, verbose: bool = 
     if verbose:
         print(file=sys.stderr)
     return path
+
+
+def finite_chunk(chunk: np.ndarray, dtype, name: str, lo: int, hi: int) -> np.ndarray:
+    """``chunk`` (the priors of trajectories ``lo .. hi``) cast to the dataset's ``dtype``;
+    ValueError if the rollouts hold NaN/inf, or values beyond ``dtype``'s range."""
+    if not np.isfinite(chunk).all():
+        raise ValueError(f"dataset of {name}: the particle-filter rollouts of trajectories "
+                         f"{lo}..{hi - 1} contain NaN/inf ({int((~np.isfinite(chunk)).sum())} "
+                         f"values): check the model's drift (and its noise and initial ensemble) "
+                         f"for blow-up")
+    out = chunk.astype(dtype)
+    if not np.isfinite(out).all():
+        raise ValueError(f"dataset of {name}: the rollouts of trajectories {lo}..{hi - 1} exceed "
+                         f"the range of {np.dtype(dtype).name} (largest |x| "
+                         f"{float(np.abs(chunk).max()):.3g}); use DatasetConfig(dtype='float32')")
+    return out
+
+
+def read_meta(directory: str) -> dict:
+    """The ``meta.json`` of a dataset folder; one-line errors naming the file."""
+    path = os.path.join(directory, "meta.json")
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"dataset {directory}: no meta.json there (not a dataset folder, "
+                                f"or its generation never finished a chunk)")
+    try:
+        with open(path) as f:
+            meta = json.load(f)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"dataset {directory}: {path} cannot be read ({type(e).__name__}: {e}); "
+                         f"delete {directory} to generate the data afresh") from None
+    fields = ("id", "shape", "dataset", "chunks_done")
+    if not isinstance(meta, dict) or any(k not in meta for k in fields):
+        raise ValueError(f"dataset {directory}: {path} must be a JSON object with the fields "
+                         f"{', '.join(fields)}; delete {directory} to generate the data afresh")
+    return meta
+
+
+def check_array_file(path: str, shape: tuple, dtype, directory: str) -> None:
+    """Refuse an ``.npy`` file whose header or size is not that of an array of ``shape`` and
+    ``dtype`` (a truncated or foreign file), naming it; the memory map would read zeros past a
+    truncation."""
+    try:
+        with open(path, "rb") as f:
+            version = np.lib.format.read_magic(f)
+            read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                           else np.lib.format.read_array_header_2_0)
+            found_shape, _, found_dtype = read_header(f)
+            offset = f.tell()
+    except (OSError, ValueError) as e:
+        raise ValueError(f"dataset {directory}: {path} is not a readable .npy file "
+                         f"({type(e).__name__}: {e}); delete {directory} to generate the data "
+                         f"afresh") from None
+    expected = offset + int(np.prod(shape)) * np.dtype(dtype).itemsize
+    size = os.path.getsize(path)
+    if tuple(found_shape) != tuple(shape) or np.dtype(found_dtype) != np.dtype(dtype) \
+            or size != expected:
+        raise ValueError(f"dataset {directory}: {path} is damaged or foreign (shape "
+                         f"{tuple(found_shape)} {np.dtype(found_dtype).name}, {size} bytes; "
+                         f"expected {tuple(shape)} {np.dtype(dtype).name}, {expected} bytes); "
+                         f"delete {directory} to generate the data afresh")
 
 
 def _atomic_json(path: str, obj) -> None:
@@ -174,16 +239,26 @@ class Dataset(NamedTuple):
 
 
 def load(directory: str, valid_fraction: float = 0.05) -> Dataset:
-    """Open a finished dataset read-only; hold out the last ``valid_fraction`` of trajectories."""
-    with open(os.path.join(directory, "meta.json")) as f:
-        meta = json.load(f)
+    """Open a finished dataset read-only; hold out the last ``valid_fraction`` of trajectories.
+    A damaged folder (meta.json, the array's size) fails with one line naming the file."""
+    meta = read_meta(directory)
     M = meta["shape"][0]
     n_chunks = -(-M // meta["dataset"]["chunk"])
     if meta["chunks_done"] < n_chunks:
         raise ValueError(f"dataset {directory} is incomplete ({meta['chunks_done']}/{n_chunks} "
                          f"chunks); run the generation again to finish it")
-    arr = np.load(os.path.join(directory, "ensembles.npy"), mmap_mode="r")
+    path = os.path.join(directory, "ensembles.npy")
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"dataset {directory}: {path} is missing; delete {directory} to "
+                                f"generate the data afresh")
+    check_array_file(path, tuple(meta["shape"]),
+                     np.dtype(meta["dataset"].get("dtype", "float16")), directory)
+    arr = np.load(path, mmap_mode="r")
     n_valid = max(1, int(round(valid_fraction * M)))
+    if M - n_valid < 1:
+        raise ValueError(f"dataset {directory} has {M} trajectories: too few to hold out "
+                         f"{n_valid} for validation and train on the rest (DatasetConfig."
+                         f"trajectories >= 2)")
     idx = np.arange(M)
     return Dataset(arr, meta["id"], idx[:-n_valid], idx[-n_valid:])
 

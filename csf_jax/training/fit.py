@@ -28,8 +28,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from csf_jax import networks, problems
-from csf_jax.ssm import StateSpaceModel, Step, at_step
+from csf_jax import _checks, networks, problems
+from csf_jax.ssm import StateSpaceModel, Step, at_step, check_model
 from csf_jax.trained import TrainedPrior, model_fingerprint
 from csf_jax.training.data import DatasetConfig, generate, load
 from csf_jax.training.train import TrainConfig, train
@@ -54,6 +54,7 @@ def _check_model(model) -> StateSpaceModel:
     if not isinstance(model, StateSpaceModel):
         raise TypeError(f"train_prior: model must be a csf_jax.StateSpaceModel (or a built-in "
                         f"problem's name), got {type(model).__name__}")
+    check_model(model, "train_prior")
     x = model.initial_ensemble(jax.random.key(0), 4)
     if np.shape(x) != (4, model.dim):
         raise ValueError(f"train_prior: model {model.name!r}: initial_ensemble(key, 4) has shape "
@@ -71,6 +72,10 @@ def _check_model(model) -> StateSpaceModel:
         raise ValueError(f"train_prior: model {model.name!r}: drift gives {np.shape(fx)[1:]} and "
                          f"observe {np.shape(hx)[1:]} per particle; expected ({model.dim},) and "
                          f"({model.obs_dim},)")
+    for label, values in (("drift", fx), ("observe", hx), ("initial_ensemble", x)):
+        if not np.isfinite(np.asarray(values)).all():
+            raise ValueError(f"train_prior: model {model.name!r}: its {label} gives NaN/inf at "
+                             f"points of its initial ensemble; check the model's {label}")
     return model
 
 
@@ -83,11 +88,12 @@ def train_prior(model: StateSpaceModel | str, key, *, directory: str | None = No
       model: any ``StateSpaceModel`` (or a built-in problem's name). Its ``initial_ensemble``,
         ``drift``, process noise and likelihood drive the particle-filter rollouts that make the
         training data; its ``num_steps`` is the rollout length.
-      key: a ``jax.random.key``; the seeds of the data and of the training come from it
-        (``key_seed``). Same key, same prior.
+      key: one ``jax.random.key`` (or a legacy uint32 ``(2,)`` key); the seeds of the data and
+        of the training come from it (``key_seed``). Same key, same prior.
       directory: where the data (``data/``) and checkpoints (``ckpt/``) live, for resuming
-        (default ``runs/<model.name>``). A directory made for another model, config or key is
-        refused with the differing fields named.
+        (default ``runs/<model.name>``). A directory made for another model, dataset, training
+        config (a longer ``steps`` continues the run) or key is refused with the differing fields
+        named; so is damaged data (a truncated ``data/ensembles.npy`` or ``meta.json``).
       dataset: what to record (``DatasetConfig``; its seed is replaced by the key's).
       config: the training (``TrainConfig``; its seed is replaced by the key's).
       network: the encoder and score-net architecture (``NetworkConfig``).
@@ -97,9 +103,17 @@ def train_prior(model: StateSpaceModel | str, key, *, directory: str | None = No
       ``TrainedPrior(params, network, meta)``; ``meta`` records the model's fingerprint, the
       configs, the dataset id, the validation losses and the seconds spent.
     """
+    _checks.check_key(key, "train_prior")
+    for label, value, kind in (("dataset", dataset, DatasetConfig), ("config", config, TrainConfig),
+                               ("network", network, networks.NetworkConfig)):
+        if not isinstance(value, kind):
+            raise TypeError(f"train_prior: {label}= must be a csf_jax.{kind.__name__}, got "
+                            f"{type(value).__name__}")
     spec, model = model, _check_model(model)  # a registry name keeps its name-based dataset id
     seed = key_seed(key)
-    directory = directory or os.path.join("runs", model.name)
+    directory = (os.path.join("runs", model.name) if directory is None
+                 else _checks.check_path(directory, "train_prior: directory"))
+    _checks.check_folder(directory, "train_prior: directory", writable=True)
     dataset = dataclasses.replace(dataset, seed=seed)
     config = dataclasses.replace(config, seed=seed)
     t0 = time.perf_counter()

@@ -1,15 +1,18 @@
 """The offline training loop: encoder and score net jointly, optax Adam with a step decay.
 
 Resumable: the loop restores the latest intact checkpoint of ``out_dir`` if there is one (after
-checking it was made for the same problem, network, data and seed) and continues; newer, damaged
-checkpoints are moved aside with a message (``checkpoint.restore_intact``). Batches are a pure function of
-``(seed, step)``, so a resumed run sees exactly the batches an uninterrupted one would have.
+checking it was made for the same problem, network, data, seed and training settings, and is not
+beyond the requested steps) and continues; newer, damaged checkpoints are moved aside with a
+message (``checkpoint.restore_intact``). Batches are a pure function of ``(seed, step)``, so a
+resumed run sees exactly the batches an uninterrupted one would have. A loss that stops being
+finite ends the run with a FloatingPointError.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 import sys
 import time
 from typing import NamedTuple
@@ -19,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from csf_jax import networks
+from csf_jax import _checks, networks
 from csf_jax.training import checkpoint
 from csf_jax.training.data import Dataset, sample_batch
 from csf_jax.training.loss import batch_loss, draw_noise
@@ -56,6 +59,7 @@ class TrainConfig:
     mirror: bool = False
 
     def __post_init__(self):
+        _checks.check_fields(self)
         if self.steps < 1 or self.batch_sets < 1 or self.targets_per_set < 1:
             raise ValueError("TrainConfig.steps, batch_sets and targets_per_set must be >= 1")
         if not self.set_sizes or min(self.set_sizes) < 2:
@@ -129,11 +133,24 @@ def train(problem: str, data: Dataset, out_dir: str, *, network: networks.Networ
             "train": dataclasses.asdict(config), "dataset_id": data.id, "seed": config.seed,
             "valid_loss": [], "seconds": 0.0}
     meta["train"]["set_sizes"] = list(config.set_sizes)
-    mngr = checkpoint.manager(out_dir, config.save_every)
+    _checks.check_folder(out_dir, f"train {problem}: the checkpoint folder", writable=True)
+    with checkpoint.manager(out_dir, config.save_every) as mngr:
+        return _train(problem, data, out_dir, mngr, meta, network, config, log_every, verbose)
+
+
+def _train(problem: str, data: Dataset, out_dir: str, mngr, meta: dict,
+           network: networks.NetworkConfig, config: TrainConfig, log_every: int, verbose: bool):
+    """``train``'s loop on an open checkpoint manager ``mngr``."""
+    dim = int(meta["dim"])
     state = init_state(jax.random.key(config.seed), network, dim, config)
     restored = checkpoint.restore_intact(mngr, state, meta, lambda msg: _log(True, msg))
     if restored is not None:
         state, found = restored
+        if int(state.step) > config.steps:
+            raise ValueError(f"train {problem}: the checkpoint in {out_dir} is at step "
+                             f"{int(state.step)}, beyond the requested steps={config.steps}; ask "
+                             f"for steps >= {int(state.step)} to continue it, or use another "
+                             f"directory (or delete {out_dir}) to train afresh")
         meta["valid_loss"], meta["seconds"] = found["valid_loss"], found["seconds"]
         _log(verbose, f"[train {problem}] resumed from step {int(state.step)} in {out_dir}")
     full = network.base == "gaussian"
@@ -150,6 +167,7 @@ def train(problem: str, data: Dataset, out_dir: str, *, network: networks.Networ
         done = step + 1
         if done % log_every == 0 or done == config.steps:
             loss = float(loss)
+            _check_loss(problem, loss, done, data.id)
             ema = loss if ema is None else 0.9 * ema + 0.1 * loss
             rate = (done - start) / (time.perf_counter() - t_start)
             _log(verbose, f"\r[train {problem}] step {done}/{config.steps} loss {ema:.4f} "
@@ -158,6 +176,7 @@ def train(problem: str, data: Dataset, out_dir: str, *, network: networks.Networ
             v = float(eval_loss(state.params, valid[0], valid[1], valid_key, *valid[2:],
                                 network=network,
                                 t_min=config.t_min))
+            _check_loss(problem, v, done, data.id)
             meta["valid_loss"].append([done, v])
             _log(verbose, f"  valid {v:.4f}", end="")
         if done % config.save_every == 0 or done == config.steps:
@@ -168,6 +187,14 @@ def train(problem: str, data: Dataset, out_dir: str, *, network: networks.Networ
     mngr.wait_until_finished()
     _log(verbose, "")
     return state.params, meta
+
+
+def _check_loss(problem: str, loss: float, step: int, dataset: str) -> None:
+    """Stop a run whose loss is no longer finite, naming the likely causes."""
+    if not math.isfinite(loss):
+        raise FloatingPointError(f"train {problem}: the loss became {loss} by step {step}; the "
+                                 f"training data (dataset {dataset}) may hold NaN/inf, or the "
+                                 f"learning rate is too large (TrainConfig.lr)")
 
 
 def _log(verbose: bool, msg: str, end: str = "\n") -> None:
