@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 import math
 import numbers
 import os
@@ -312,3 +313,23 @@ def check_folder(path: str, name: str, *, writable: bool = False) -> None:
         probe = parent
     if not os.access(probe, os.W_OK | os.X_OK):
         raise PermissionError(f"{name}: cannot write to {path} ({probe} is not writable)")
+
+
+def read_json_record(directory: str, what: str, missing: str, remedy: str = "") -> dict:
+    """The JSON object in ``directory/meta.json``; one-line errors naming ``what`` and the file.
+
+    ``missing`` says what a folder without the file is; ``remedy`` is appended to the messages.
+    """
+    path = os.path.join(directory, "meta.json")
+    tail = f"; {remedy}" if remedy else ""
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{what} {directory}: no meta.json there ({missing})")
+    try:
+        with open(path) as f:
+            record = json.load(f)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{what} {directory}: {path} cannot be read ({type(e).__name__}: "
+                         f"{e}){tail}") from None
+    if not isinstance(record, dict):
+        raise ValueError(f"{what} {directory}: {path} must hold a JSON object{tail}")
+    return record

@@ -231,18 +231,8 @@ def export(directory: str, params, network: networks.NetworkConfig, meta: dict) 
 
 def _read_meta(directory: str) -> tuple[dict, networks.NetworkConfig, int]:
     """``(meta, network, dim)`` from ``directory/meta.json``; one-line errors naming the folder."""
-    path = os.path.join(directory, "meta.json")
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"model {directory}: no meta.json there (not a folder written by "
-                                f"csf_jax.pretrained.export)")
-    try:
-        with open(path) as f:
-            meta = json.load(f)
-    except (OSError, ValueError) as e:
-        raise ValueError(f"model {directory}: meta.json cannot be read ({type(e).__name__}: {e})"
-                         ) from None
-    if not isinstance(meta, dict):
-        raise ValueError(f"model {directory}: meta.json must hold a JSON object")
+    meta = _checks.read_json_record(directory, "model", "not a folder written by "
+                                    "csf_jax.pretrained.export")
     for field in ("problem", "dim", "network"):
         if field not in meta:
             raise ValueError(f"model {directory}: meta.json has no {field!r} field")

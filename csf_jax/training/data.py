@@ -179,17 +179,11 @@ def finite_chunk(chunk: np.ndarray, dtype, name: str, lo: int, hi: int) -> np.nd
 def read_meta(directory: str) -> dict:
     """The ``meta.json`` of a dataset folder; one-line errors naming the file."""
     path = os.path.join(directory, "meta.json")
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"dataset {directory}: no meta.json there (not a dataset folder, "
-                                f"or its generation never finished a chunk)")
-    try:
-        with open(path) as f:
-            meta = json.load(f)
-    except (OSError, ValueError) as e:
-        raise ValueError(f"dataset {directory}: {path} cannot be read ({type(e).__name__}: {e}); "
-                         f"delete {directory} to generate the data afresh") from None
+    meta = _checks.read_json_record(
+        directory, "dataset", "not a dataset folder, or its generation never finished a chunk",
+        f"delete {directory} to generate the data afresh")
     fields = ("id", "shape", "dataset", "chunks_done")
-    if not isinstance(meta, dict) or any(k not in meta for k in fields):
+    if any(k not in meta for k in fields):
         raise ValueError(f"dataset {directory}: {path} must be a JSON object with the fields "
                          f"{', '.join(fields)}; delete {directory} to generate the data afresh")
     return meta
