@@ -82,6 +82,7 @@ def _small_run(name, num_steps=3, n=32):
     return model, truth, obs, ens
 
 
+@pytest.mark.slow  # kept out of the default run's time budget (jit and vmap of CSF: test_reliability.py)
 def test_vmap_and_jit_match_unbatched():
     model, _, _, _ = _small_run("cubic10_corr")
     keys = jax.random.split(jax.random.key(3), 3)
