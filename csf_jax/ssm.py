@@ -551,9 +551,19 @@ def check_dynamics(model: StateSpaceModel, dtype, inputs=None, name: str = "filt
     ``(d,)`` of ``dtype`` and, for a time-varying model, the step with one slice of ``inputs``;
     refuse outputs of the wrong shape, and turn a failure (a time-varying model's drift that needs
     the inputs it was not given, say) into one line naming the model and the map."""
-    u = None if inputs is None else jax.tree_util.tree_map(
+    if inputs is None:
+        _checked_dynamics(model, np.dtype(dtype).name, name)
+        return
+    u = jax.tree_util.tree_map(
         lambda a: jax.ShapeDtypeStruct(np.shape(a)[1:], jnp.result_type(a)), inputs)
     _check_dynamics(model, np.dtype(dtype).name, u, name)
+
+
+@functools.lru_cache(maxsize=256)
+def _checked_dynamics(model: StateSpaceModel, dtype: str, name: str) -> None:
+    """``_check_dynamics`` without inputs, once per model and dtype (a failure is not cached):
+    the trace costs milliseconds, as much as a whole filter step of a small model."""
+    _check_dynamics(model, dtype, None, name)
 
 
 def _check_dynamics(model: StateSpaceModel, dtype: str, u, name: str) -> None:

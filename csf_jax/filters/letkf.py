@@ -105,6 +105,13 @@ def sensor_sites(model: StateSpaceModel, probe) -> np.ndarray | None:
     return sites.astype(np.int32)
 
 
+@functools.lru_cache(maxsize=256)
+def _model_sensor_sites(model: StateSpaceModel) -> np.ndarray | None:
+    """``sensor_sites`` at the model's own probe state, once per model (two Jacobian-vector
+    products per call would cost as much as an analysis at d = 40)."""
+    return sensor_sites(model, _probe(model))
+
+
 def check_localization(model: StateSpaceModel, localization, name: str, *,
                        points: bool = False) -> np.ndarray | None:
     """Check ``localization`` against ``model`` at the boundary; returns the observations' sites
@@ -132,7 +139,7 @@ def check_localization(model: StateSpaceModel, localization, name: str, *,
                          f"sites in [0, {d}), one per observation")
     if model.time_varying:
         return None
-    sites = sensor_sites(model, _probe(model))
+    sites = _model_sensor_sites(model)
     if sites is None:
         if points:
             raise ValueError(f"{name}: model.observe is not a point sensor at the localization's "
