@@ -17,7 +17,8 @@ Entry points:
   ``csf_jax.gaussian_prior()``: CSF's prior as the ensemble's own Gaussian (``filter(..., prior=)``).
 """
 
-from csf_jax import metrics, problems
+# _threads first: one OpenBLAS thread for jaxlib's LAPACK kernels (see csf_jax._threads)
+from csf_jax import _threads, metrics, problems  # noqa: F401
 from csf_jax.filters import (
                              CSFConfig,
                              FilterResult,

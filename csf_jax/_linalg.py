@@ -1,21 +1,89 @@
 """Small dense linear algebra in plain jax.numpy, for the per-particle (d, d) systems of the Kalman
 guidance.
 
-Cholesky factorisation and triangular solves written as d unrolled column steps, vectorised over
-leading batch axes. They replace the LAPACK custom calls of ``jnp.linalg.cholesky`` and
-``jax.scipy.linalg.solve_triangular`` inside the sampler's scans, which deadlocked XLA's CPU runtime
-(jax 0.10.2, 2-core CPU: vmapped over 16 runs of 1000 particles, every worker thread asleep and the
-result never ready; reproduced with ``--xla_cpu_enable_concurrency_optimized_scheduler`` on and
-off, gone with these functions). For d <= ~50 they cost about the same. Compile time grows with d (d steps are unrolled).
+Cholesky factorisation and triangular solves, vectorised over leading batch axes. They replace the
+LAPACK custom calls of ``jnp.linalg.cholesky`` and ``jax.scipy.linalg.solve_triangular`` inside
+the sampler's scans, which deadlocked XLA's CPU runtime (jax 0.10.2, 2-core CPU: vmapped over 16
+runs of 1000 particles, every worker thread asleep and the result never ready; reproduced with
+``--xla_cpu_enable_concurrency_optimized_scheduler`` on and off, gone with these functions).
+
+Two forms with the same arithmetic up to rounding: up to ``UNROLL_MAX`` columns, the column steps
+unrolled in Python; above it, a ``lax.fori_loop`` over columns, whose program (and so compile
+time) is the same for every d. Unrolled, compile time grows faster than d^2 (the default filter
+at N = 200: 13 s at d = 10, 35 s at d = 20 and minutes at d = 40, against 3-4 s for the loops at
+any d; ``python -m experiments.compile_time``, docs/benchmark.md). The unrolled form is kept up
+to d = 20 because the committed results of the paper's problems (d <= 20) were computed with it:
+with the loops they move in the third digit (rounding differences grow along a filter run).
 """
+
 
 from __future__ import annotations
 
 import jax.numpy as jnp
+from jax import lax
+
+UNROLL_MAX = 20
 
 
 def cholesky(a):
-    """Lower Cholesky factor ``l`` with ``l l^T = a``; ``a: (..., d, d)`` symmetric positive definite."""
+    """Lower Cholesky factor ``l`` with ``l l^T = a``; ``a: (..., d, d)`` symmetric positive definite.
+
+    Column j: ``l[:, j] = (a[:, j] - l l[j, :]) / pivot`` on and below the diagonal, with the
+    columns after j still zero.
+    """
+    d = a.shape[-1]
+    if d <= UNROLL_MAX:
+        return _cholesky_unrolled(a)
+    below = jnp.arange(d)
+
+    def column(j, l):
+        row = lax.dynamic_index_in_dim(l, j, axis=-2, keepdims=False)  # (..., d): l[j, :j], zeros
+        col = lax.dynamic_index_in_dim(a, j, axis=-1, keepdims=False) \
+            - jnp.einsum("...ik,...k->...i", l, row)
+        pivot = jnp.sqrt(lax.dynamic_index_in_dim(col, j, axis=-1, keepdims=False))
+        col = jnp.where(below >= j, col / pivot[..., None], 0.0)
+        return lax.dynamic_update_index_in_dim(l, col[..., None], j, axis=-1)
+
+    return lax.fori_loop(0, d, column, jnp.zeros_like(a))
+
+
+def solve_lower(l, b):
+    """``x`` with ``l x = b``; ``l: (..., d, d)`` lower triangular, ``b: (..., d)``."""
+    return _substitute(l, b, transposed=False)
+
+
+def solve_lower_transposed(l, b):
+    """``x`` with ``l^T x = b``; ``l: (..., d, d)`` lower triangular, ``b: (..., d)``."""
+    return _substitute(l, b, transposed=True)
+
+
+def cho_solve(l, b):
+    """``x`` with ``l l^T x = b``."""
+    return solve_lower_transposed(l, solve_lower(l, b))
+
+
+def _substitute(l, b, transposed: bool):
+    """Forward substitution ``l x = b`` (back substitution ``l^T x = b`` if ``transposed``), one
+    entry of ``x`` per step, the entries not yet solved still zero."""
+    d = l.shape[-1]
+    if d <= UNROLL_MAX:
+        return _substitute_unrolled(l, b, transposed)
+    b = jnp.broadcast_to(b, jnp.broadcast_shapes(b.shape, l.shape[:-1]))
+
+    def entry(i, x):
+        j = d - 1 - i if transposed else i
+        coef = lax.dynamic_index_in_dim(l, j, axis=-1 if transposed else -2, keepdims=False)
+        diag = lax.dynamic_index_in_dim(coef, j, axis=-1, keepdims=False)
+        rhs = lax.dynamic_index_in_dim(b, j, axis=-1, keepdims=False)
+        xj = (rhs - jnp.sum(coef * x, -1)) / diag
+        return lax.dynamic_update_index_in_dim(x, xj[..., None], j, axis=-1)
+
+    return lax.fori_loop(0, d, entry, jnp.zeros_like(b))
+
+
+
+def _cholesky_unrolled(a):
+    """``cholesky`` with the d column steps unrolled."""
     d = a.shape[-1]
     cols = []
     for j in range(d):
@@ -27,27 +95,13 @@ def cholesky(a):
     return jnp.stack(cols, -1)
 
 
-def solve_lower(l, b):
-    """``x`` with ``l x = b``; ``l: (..., d, d)`` lower triangular, ``b: (..., d)``."""
-    d = l.shape[-1]
-    xs = []
-    for j in range(d):
-        acc = b[..., j] - sum(l[..., j, k] * xs[k] for k in range(j)) if j else b[..., j]
-        xs.append(acc / l[..., j, j])
-    return jnp.stack(xs, -1)
-
-
-def solve_lower_transposed(l, b):
-    """``x`` with ``l^T x = b``; ``l: (..., d, d)`` lower triangular, ``b: (..., d)``."""
+def _substitute_unrolled(l, b, transposed: bool):
+    """``_substitute`` with the d entries unrolled."""
     d = l.shape[-1]
     xs = [None] * d
-    for j in reversed(range(d)):
-        acc = b[..., j] - sum(l[..., k, j] * xs[k] for k in range(j + 1, d)) if j < d - 1 \
-            else b[..., j]
+    for j in (reversed(range(d)) if transposed else range(d)):
+        done = range(j + 1, d) if transposed else range(j)
+        coef = (lambda k: l[..., k, j]) if transposed else (lambda k: l[..., j, k])
+        acc = b[..., j] - sum(coef(k) * xs[k] for k in done) if len(done) else b[..., j]
         xs[j] = acc / l[..., j, j]
     return jnp.stack(xs, -1)
-
-
-def cho_solve(l, b):
-    """``x`` with ``l l^T x = b``."""
-    return solve_lower_transposed(l, solve_lower(l, b))

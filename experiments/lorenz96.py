@@ -17,7 +17,6 @@ import functools
 import json
 import os
 import sys
-import time
 
 import jax
 import jax.numpy as jnp
@@ -29,6 +28,7 @@ from csf_jax.filters import driver
 from csf_jax.filters.letkf import LETKF, LETKFStatic
 from csf_jax.problems.lorenz96 import obs_sites
 from experiments._cli import int_at_least, parser, positive_int, write_page
+from experiments._timing import timed
 from experiments.run import machine
 
 RADII = (2.0, 4.0, 6.0, 8.0, 10.0, 15.0)
@@ -87,10 +87,9 @@ def cell(name: str, method: str, particles: int, runs: int, steps: int, **settin
         args = (jnp.asarray(settings["inflation"], jnp.float32),)
     else:
         raise ValueError(method)
-    t0 = time.perf_counter()
-    result = run(obs, ens, keys, *args)
+    result, seconds, _ = timed(run, obs, ens, keys, *args)
     rmse = time_rmse(result.mean, truth, cfg.burn_in) if bool(result.finite.all()) else float("inf")
-    out = {"rmse": rmse, "seconds_per_step": (time.perf_counter() - t0) / (runs * steps)}
+    out = {"rmse": rmse, "seconds_per_step": seconds / (runs * steps)}
     os.makedirs(CACHE, exist_ok=True)
     with open(path, "w") as f:
         json.dump(out, f)

@@ -38,6 +38,7 @@ from csf_jax.filters.local_csf import LocalCSFConfig, local_filter
 from csf_jax.problems.lorenz96 import obs_sites
 from experiments import lorenz96 as baselines
 from experiments._cli import multiple_of, parser, positive_int, write_page
+from experiments._timing import timed
 from experiments.run import machine
 
 CACHE = os.path.join("runs", "lorenz96_csf")
@@ -83,10 +84,7 @@ def csf_cell(name: str, sampler: str, inflation: float, runs: int, steps: int) -
         loc = csf_jax.ring_localization(model.dim, obs_sites(cfg))
         run = jax.jit(jax.vmap(lambda o, e, k: local_filter(
             o, e, problem=model, key=k, localization=loc, config=config, check_finite=False)))
-        t0 = time.perf_counter()
-        result = run(obs, ens, keys)
-        result.mean.block_until_ready()
-        seconds = time.perf_counter() - t0
+        result, seconds, _ = timed(run, obs, ens, keys)
         per_step = jnp.sqrt(jnp.mean((result.mean - truth[:, 1:]) ** 2, -1))
         ok = bool(result.finite.all())
         return {"rmse": baselines.time_rmse(result.mean, truth, cfg.burn_in) if ok else float("inf"),

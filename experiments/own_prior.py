@@ -23,6 +23,7 @@ import numpy as np
 import csf_jax
 from csf_jax import problems
 from experiments._cli import one_of, parser, positive_int, write_page
+from experiments._timing import timed
 from experiments.run import _errors, csf_config, machine, simulate_runs, summarize
 
 DEFAULT = ("double_well", "cauchy", "cubic10_indep", "cubic10_corr")
@@ -39,9 +40,8 @@ def one(name: str, runs: int) -> dict:
     config = csf_config(name)
     fn = jax.jit(jax.vmap(lambda o, e, k: csf_jax.filter(trained, o, e, problem=model, key=k,
                                                          config=config).mean))
-    t0 = time.perf_counter()
-    mean = np.asarray(fn(obs, ens, keys))
-    filter_s = time.perf_counter() - t0
+    mean, filter_s, _ = timed(fn, obs, ens, keys)
+    mean = np.asarray(mean)
     own = summarize(_errors(mean, np.asarray(truth)), np.asarray(shocks), model.dim)["rmse"]
     table = {}
     path = os.path.join("results", name, "results.json")

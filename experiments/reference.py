@@ -17,7 +17,6 @@ import argparse
 import json
 import os
 import sys
-import time
 
 import jax
 import numpy as np
@@ -26,6 +25,7 @@ from csf_jax import problems  # noqa: E402
 from csf_jax.filters.reference import ReferenceConfig  # noqa: E402
 from experiments import run as run_mod  # first: it sets XLA's host devices before jax loads
 from experiments._cli import int_list, name_list, parser, positive_int  # noqa: E402
+from experiments._timing import timed  # noqa: E402
 
 
 def convergence(name: str, runs: int, counts, seed: int = 0):
@@ -39,13 +39,13 @@ def convergence(name: str, runs: int, counts, seed: int = 0):
     for cfg in settings:
         fn = jax.jit(jax.vmap(run_mod.method_fn("reference", model, None, None, None, None,
                                                 reference=cfg)))
-        t0 = time.perf_counter()
-        mean = np.asarray(fn(obs, ens, keys).mean)
+        result, seconds, _ = timed(fn, obs, ens, keys)
+        mean = np.asarray(result.mean)
         err = run_mod._errors(mean, truth)
         rows.append({"problem": name, "particles": cfg.particles, "model_shocks": cfg.model_shocks,
                      "runs": runs, "rmse": float(np.sqrt(err.mean())),
                      "rmse_per_run": np.sqrt(err.mean(1)).round(4).tolist(),
-                     "seconds": time.perf_counter() - t0})
+                     "seconds": seconds})
         r = rows[-1]
         print(f"| {name} | {r['particles']} | {'yes' if r['model_shocks'] else 'no'} | {runs} | "
               f"{r['rmse']:.4f} | {', '.join(f'{v:.3f}' for v in r['rmse_per_run'])} | "
