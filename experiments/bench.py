@@ -297,13 +297,18 @@ class Worker:
 
 def _worker_env(impl: str, args, cache_root: str) -> dict:
     """The worker's environment: this checkout first on PYTHONPATH; for torch, the OpenMP wait
-    policy and a fresh (empty) Inductor cache, so that compile_s is a cold compile."""
+    policy and a fresh (empty) Inductor cache, so that compile_s is a cold compile; for JAX with
+    ``--jax-cache warm``, a fresh persistent compilation cache (filled by a first worker)."""
     env = dict(os.environ)
     env.setdefault("PYTHONPATH", "")
     env["PYTHONPATH"] = os.pathsep.join([os.getcwd(), env["PYTHONPATH"]]).rstrip(os.pathsep)
     if impl.startswith("jax") and args.shards > 1:
         env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count="
                             f"{args.shards}").strip()
+    if impl.startswith("jax") and args.jax_cache == "warm":
+        env["JAX_COMPILATION_CACHE_DIR"] = tempfile.mkdtemp(dir=cache_root)
+        env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+        env["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
     if impl.startswith("torch"):
         if args.omp_wait_policy != "unset":
             env["OMP_WAIT_POLICY"] = args.omp_wait_policy.upper()
@@ -313,12 +318,18 @@ def _worker_env(impl: str, args, cache_root: str) -> dict:
 
 def measure(impls, base_spec: dict, args, cache_root: str, repeats: int) -> list[dict]:
     """Start one worker per implementation, alternate ``repeats`` timed runs, return rows."""
-    workers = {}
+    workers, cold = {}, {}
     for impl in impls:
         spec = dict(base_spec, impl=impl, compile=impl == "torch_compile",
                     vmap=impl == "jax_vmap", torch_threads=args.torch_threads,
                     shards=args.shards)
-        workers[impl] = Worker(spec, _worker_env(impl, args, cache_root))
+        env = _worker_env(impl, args, cache_root)
+        if "JAX_COMPILATION_CACHE_DIR" in env:
+            # a first worker compiles into the empty cache (the cold compile and its memory),
+            # the measured one loads the program from it
+            first = Worker(spec, env)
+            cold[impl] = dict(first.read(), **first.close())
+        workers[impl] = Worker(spec, env)
         workers[impl].info = workers[impl].read()
     times = {impl: [] for impl in impls}
     for r in range(1, repeats + 1):
@@ -341,7 +352,9 @@ def measure(impls, base_spec: dict, args, cache_root: str, repeats: int) -> list
             "filter_steps": base_spec["filter_steps"],
             "median_s": None if med is None else med / per,
             "total_median_s": med,
-            "compile_s": w.info.get("compile_s"), "peak_mb": end.get("peak_mb"),
+            "compile_s": cold.get(impl, w.info).get("compile_s"), "peak_mb": end.get("peak_mb"),
+            "cache_load_s": w.info.get("compile_s") if impl in cold else None,
+            "cold_peak_mb": cold[impl].get("peak_mb") if impl in cold else None,
             "base_mb": w.info.get("base_mb"), "warmup_s": w.info.get("warmup_s"),
             "times_s": times[impl], "torch_threads": w.info.get("torch_threads"),
             "shards": w.info.get("shards"),
@@ -373,6 +386,12 @@ def machine_info(args) -> dict:
     }
 
 
+def _jax_peak(row: dict) -> str:
+    """The JAX worker's peak MB; with a warm cache, the compiling worker's in parentheses."""
+    cold = row.get("cold_peak_mb")
+    return _fmt(row.get("peak_mb"), ".0f") + ("" if cold is None else f" ({cold:.0f})")
+
+
 def _fmt(x, spec=".3f"):
     return "-" if x is None else format(x, spec)
 
@@ -382,7 +401,7 @@ def tables(rows: list[dict]) -> str:
     by = {(r["kind"], r["d"], r["N"], r["impl"]): r for r in rows}
     out = ["### One filter step (seconds per filter step, median)", "",
            "| d | N | L | JAX s | eager s | compile s | JAX/eager | JAX/compile | JAX compile s "
-           "| torch.compile s | peak MB JAX / eager / compile |",
+           "| torch.compile s | peak MB JAX (compiling) / eager / compile |",
            "|---|---|---|---|---|---|---|---|---|---|---|"]
     keys = sorted({(r["d"], r["N"], r["steps"]) for r in rows if r["kind"] == "step"})
     for d, n, steps in keys:
@@ -393,7 +412,7 @@ def tables(rows: list[dict]) -> str:
             f"| {d} | {n} | {steps} | {_fmt(js)} | {_fmt(es)} | "
             f"{_fmt(cs) if not c.get('error') else 'failed'} | {_fmt(ratio(js, es), '.2f')} | "
             f"{_fmt(ratio(js, cs), '.2f')} | {_fmt(j.get('compile_s'), '.1f')} | "
-            f"{_fmt(c.get('compile_s'), '.1f')} | {_fmt(j.get('peak_mb'), '.0f')} / "
+            f"{_fmt(c.get('compile_s'), '.1f')} | {_jax_peak(j)} / "
             f"{_fmt(e.get('peak_mb'), '.0f')} / {_fmt(c.get('peak_mb'), '.0f')} |")
     traj = [r for r in rows if r["kind"] == "trajectory"]
     if traj:
@@ -510,6 +529,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--shards", type=_shards, default="auto",
                    help="XLA host devices (one per core) the JAX workers split the particles over "
                         "on a CPU: 'auto' = the number of cores, 1 = off (default %(default)s)")
+    p.add_argument("--jax-cache", choices=("cold", "warm"), default="cold",
+                   help="'warm': each JAX worker loads its program from a persistent compilation "
+                        "cache that a first worker filled (compile_s and cold_peak_mb are that "
+                        "first worker's; peak_mb is the measured worker's: the memory of a run "
+                        "whose program is already compiled); 'cold': one worker compiles "
+                        "(default %(default)s)")
     p.add_argument("--worker", help=argparse.SUPPRESS)
     return p
 

@@ -50,8 +50,14 @@ def measure(dim: int, particles: int, steps: int, repeats: int) -> dict:
             "step_s": round(statistics.median(times), 4)}
 
 
-def main(argv=None):
-    p = parser("experiments.compile_time", __doc__)
+DESCRIPTION = ("Compile time and step time of csf_jax.filter (default config, Gaussian prior, "
+               "cubic sensor) against the state dimension; print the table and write "
+               "compile_time.json to --out.")
+
+
+def build_parser():
+    """The command line of ``python -m experiments.compile_time``."""
+    p = parser("compile_time", DESCRIPTION)
     p.add_argument("--dims", type=int_list(1), default=[5, 10, 20, 40, 100],
                    help="state dimensions (default %(default)s)")
     p.add_argument("--particles", type=positive_int, default=200,
@@ -61,7 +67,11 @@ def main(argv=None):
     p.add_argument("--repeats", type=positive_int, default=3,
                    help="timed calls per d (default %(default)s)")
     p.add_argument("--out", default="out/compile_time", help="output folder (default %(default)s)")
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv=None):
+    args = build_parser().parse_args(argv)
     rows = []
     print("| d | N | K | compile s | step s |\n|---|---|---|---|---|", flush=True)
     for dim in args.dims:

@@ -12,9 +12,10 @@ import sys
 
 import pytest
 
-JOBS = ("ablate", "bench", "gaussian_loss", "guidance_study", "lorenz96", "lorenz96_ablation",
-        "lorenz96_csf", "make_pretrained", "own_prior", "posterior_quality", "prior_quality",
-        "reference", "robust_table", "run", "table", "train", "tutorial", "zoo")
+JOBS = ("ablate", "bench", "compile_time", "gaussian_loss", "guidance_study", "lorenz96",
+        "lorenz96_ablation", "lorenz96_csf", "make_pretrained", "own_prior", "posterior_quality",
+        "prior_quality", "reference", "robust_table", "run", "step_parts", "table", "train",
+        "tutorial", "zoo")
 
 # measurement prose: timings, sizes, speed-ups and quoted errors
 MEASUREMENT = re.compile(
