@@ -11,6 +11,8 @@ Entry points:
   ``csf_jax.score_filter``: the SF baseline (a score net trained online at every step).
   ``csf_jax.particle_filter`` / ``csf_jax.ensemble_kalman_filter`` / ``csf_jax.kalman_filter``.
   ``csf_jax.letkf``: the localised ensemble transform Kalman filter (Lorenz-96's baseline).
+  ``csf_jax.sharded_letkf``: the LETKF with its sites split over the devices of a mesh (several
+    GPUs or hosts; docs/scale_out.md).
   ``csf_jax.local_filter``: the local CSF, linear in d (a sparse Gaussian prior from local
     regressions, a probability-flow sampler); ``LocalCSFConfig``.
   ``csf_jax.reference_filter``: the near-exact per-coordinate filter of the tables' reference row.
@@ -38,6 +40,7 @@ from csf_jax.filters import (
 )
 from csf_jax.filters.csf import ROBUST
 from csf_jax.filters.csf import csf_filter as filter  # noqa: A001  (the user-facing name)
+from csf_jax.filters.sharded import gather_result, sharded_letkf, site_mesh
 from csf_jax.guidance import GuidanceConfig
 from csf_jax.metrics import rmse
 from csf_jax.mixture import MixtureConfig
@@ -77,4 +80,5 @@ __all__ = ["CSFConfig", "FilterResult", "GuidanceConfig", "Likelihood", "Mixture
            "exact_mixture_prior", "filter", "gaussian_noise", "gaussian_noise_cov",
            "gaussian_process_noise", "gaussian_prior", "init_params", "kalman_filter",
            "learned_prior", "load_pretrained", "log_likelihood", "metrics", "particle_filter", "problems",
-           "propagate", "reference_filter", "rmse", "score_filter", "shock_steps", "simulate"]
+           "propagate", "reference_filter", "rmse", "score_filter", "shock_steps", "simulate",
+           "sharded_letkf", "site_mesh", "gather_result"]

@@ -14,8 +14,8 @@ import pytest
 
 JOBS = ("ablate", "bench", "compile_time", "gaussian_loss", "guidance_study", "lorenz96",
         "lorenz96_ablation", "lorenz96_csf", "make_pretrained", "own_prior", "posterior_quality",
-        "prior_quality", "reference", "robust_table", "run", "step_parts", "table", "train",
-        "tutorial", "zoo")
+        "prior_quality", "reference", "robust_table", "run", "scale_out", "step_parts", "table",
+        "train", "tutorial", "zoo")
 
 # measurement prose: timings, sizes, speed-ups and quoted errors
 MEASUREMENT = re.compile(
