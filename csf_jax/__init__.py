@@ -11,6 +11,8 @@ Entry points:
   ``csf_jax.score_filter``: the SF baseline (a score net trained online at every step).
   ``csf_jax.particle_filter`` / ``csf_jax.ensemble_kalman_filter`` / ``csf_jax.kalman_filter``.
   ``csf_jax.letkf``: the localised ensemble transform Kalman filter (Lorenz-96's baseline).
+  ``csf_jax.ensf``: the ensemble score filter (EnSF; training-free Monte-Carlo score, damped
+    likelihood), a baseline; ``ENSFConfig``.
   ``csf_jax.sharded_letkf``: the LETKF with its sites split over the devices of a mesh (several
     GPUs or hosts; docs/scale_out.md).
   ``csf_jax.local_filter``: the local CSF, linear in d (a sparse Gaussian prior from local
@@ -23,6 +25,7 @@ Entry points:
 from csf_jax import _threads, metrics, problems  # noqa: F401
 from csf_jax.filters import (
                              CSFConfig,
+                             ENSFConfig,
                              FilterResult,
                              LETKFConfig,
                              LocalCSFConfig,
@@ -30,6 +33,7 @@ from csf_jax.filters import (
                              ReferenceConfig,
                              SFConfig,
                              ensemble_kalman_filter,
+                             ensf,
                              kalman_filter,
                              letkf,
                              local_filter,
@@ -81,4 +85,4 @@ __all__ = ["CSFConfig", "FilterResult", "GuidanceConfig", "Likelihood", "Mixture
            "gaussian_process_noise", "gaussian_prior", "init_params", "kalman_filter",
            "learned_prior", "load_pretrained", "log_likelihood", "metrics", "particle_filter", "problems",
            "propagate", "reference_filter", "rmse", "score_filter", "shock_steps", "simulate",
-           "sharded_letkf", "site_mesh", "gather_result"]
+           "sharded_letkf", "site_mesh", "gather_result", "ensf", "ENSFConfig"]

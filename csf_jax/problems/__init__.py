@@ -30,9 +30,16 @@ CONFIGS = {
 NAMES = tuple(CONFIGS)
 
 # Lorenz-96, the data-assimilation standard (F = 8, dt = 0.05, R = I), and its nonlinear sensor.
+# lorenz96_ensf: EnSF's setup (Bao, Zhang & Zhang 2024): RK4 steps of 0.01, an arctan observation
+# (noise std 0.05) of every site every 10 steps, 150 analyses (errors averaged over the last 50),
+# a spun-up truth, an N(0, I) ensemble, random relative shocks of the truth.
 BENCHMARKS = {
     "lorenz96": Lorenz96Config(),
     "lorenz96_arctan": Lorenz96Config(sensor="arctan", obs_std=0.05),
+    "lorenz96_ensf": Lorenz96Config(dim=100, dt=0.1, substeps=10, sensor="arctan", obs_std=0.05,
+                                    num_steps=150, burn_in=100, x0_std=3.0, truth_spinup=100,
+                                    ensemble_init="standard", shock_probs=(0.005, 0.01, 0.02),
+                                    shock_sizes=(0.5, 0.2, 0.05)),
 }
 
 
