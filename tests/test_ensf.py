@@ -168,6 +168,7 @@ def test_lorenz96_ensf_problem():
         problems.config("lorenz96_ensf", ensemble_init="uniform")
 
 
+@pytest.mark.slow  # a smoke run; the Kalman test checks the analysis in the default run
 def test_short_run_tracks_the_truth():
     """d = 40, 30 analyses, N = 20: EnSF stays finite and, over the last 10 analyses, beats the
     free run of the same ensemble (no assimilation). Without shocks it tracks the truth to about
