@@ -19,12 +19,11 @@ import numpy as np
 import pytest
 
 import csf_jax
-from csf_jax.filters.letkf import local_obs
+from csf_jax.filters.letkf import _probe, local_obs, sensor_sites
 from csf_jax.filters.sharded import (
     CHUNK,
     gather_result,
     halo_width,
-    point_sensor_sites,
     sharded_letkf,
     site_mesh,
     site_plan,
@@ -215,7 +214,7 @@ def test_point_sensor_sites_beyond_float32_ramps():
         observe=lambda x: jnp.arctan(x[1::2]), process_std=0.0,
         obs_noise=csf_jax.gaussian_noise(1.0), initial_truth=lambda key: jnp.zeros(d),
         initial_ensemble=lambda key, n: jnp.zeros((n, d)))
-    sites = point_sensor_sites(model)
+    sites = sensor_sites(model, _probe(model))
     assert sites is not None and np.array_equal(sites, np.arange(1, d, 2))
 
 

@@ -92,17 +92,29 @@ def is_point_sensor(model: StateSpaceModel, sites: np.ndarray, probe) -> bool:
 
 def sensor_sites(model: StateSpaceModel, probe) -> np.ndarray | None:
     """The state site ``(m,)`` int each observation reads if ``model.observe`` is a point sensor
-    (observation j a function of one site; found with a ramp ``v_i = 1 + i / d``: ``J v / J 1``
-    is ``v`` at the site), else None (a sensor that mixes sites, or one flat at the probe)."""
+    (observation j a function of one site), else None (a sensor that mixes sites, or one flat at
+    the probe). Found digit by digit in base 1024, one Jacobian-vector product per digit:
+    ``J v / J 1`` is ``v`` at the site, and float32 resolves ``v_i = 1 + digit_i / 1024`` exactly,
+    where a single ramp ``1 + i / d`` would not beyond d = 2^23."""
     d = model.dim
-    ramp = 1.0 + np.arange(d) / d
-    slope, along = _sensor_slopes(model, probe, ramp)
+    slope, _ = _sensor_slopes(model, probe, np.ones(d))
     if slope.shape != (model.obs_dim,) or not (np.abs(slope) > 1e-6).all():
         return None
-    sites = np.rint((along / slope - 1.0) * d).astype(np.int64)
-    if np.any(sites < 0) or np.any(sites >= d) or not is_point_sensor(model, sites, probe):
+    index = np.arange(d, dtype=np.int64)
+    sites = np.zeros(model.obs_dim, np.int64)
+    scale = 1
+    while scale < d:
+        _, along = _sensor_slopes(model, probe, 1.0 + (index // scale % 1024) / 1024)
+        digit = np.rint((along / slope - 1.0) * 1024)
+        if np.any(digit < 0) or np.any(digit > 1023):
+            return None
+        sites += digit.astype(np.int64) * scale
+        scale *= 1024
+    if np.any(sites >= d) or not is_point_sensor(model, sites, probe):
         return None
-    return sites.astype(np.int32)
+    sites = sites.astype(np.int32)
+    sites.setflags(write=False)                # cached per model: shared by every call
+    return sites
 
 
 @functools.lru_cache(maxsize=256)

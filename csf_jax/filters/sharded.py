@@ -42,7 +42,7 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from csf_jax import _checks
-from csf_jax.filters.letkf import LETKFConfig, Localization, gaspari_cohn, is_point_sensor
+from csf_jax.filters.letkf import LETKFConfig, Localization, _model_sensor_sites, gaspari_cohn
 from csf_jax.filters.result import FilterResult, mark_nonfinite
 from csf_jax.ssm import (
     StateSpaceModel,
@@ -241,38 +241,6 @@ def block_analysis(forecast, hx, y, r_inv, plan: SitePlan):
 
 
 @functools.lru_cache(maxsize=64)
-def point_sensor_sites(model: StateSpaceModel) -> np.ndarray | None:
-    """The site ``(m,)`` int64 each observation of ``model.observe`` reads, or None if it is not
-    a point sensor (observation j a function of one site) at the model's probe state (a draw of
-    its initial ensemble). Found digit by digit in base 1024, one Jacobian-vector product per
-    digit (``J v / J 1`` is ``v`` at the site, and float32 resolves ``1 + k / 1024`` exactly; a
-    single ramp ``1 + i / d`` would not beyond d = 2^23), then checked with ``is_point_sensor``."""
-    d = model.dim
-    with jax.ensure_compile_time_eval():
-        probe = jnp.asarray(model.initial_ensemble(jax.random.key(0), 1)[0], jnp.float32)
-
-        def along(v):
-            _, out = jax.jvp(model.observe, (probe,), (jnp.asarray(v, jnp.float32),))
-            return np.asarray(out, np.float64)
-
-        slope = along(np.ones(d))
-        if slope.shape != (model.obs_dim,) or not (np.abs(slope) > 1e-6).all():
-            return None
-        sites = np.zeros(model.obs_dim, np.int64)
-        index = np.arange(d, dtype=np.int64)
-        scale = 1
-        while scale < d:
-            digit = np.rint((along(1.0 + (index // scale % 1024) / 1024) / slope - 1.0) * 1024)
-            if np.any(digit < 0) or np.any(digit > 1023):
-                return None
-            sites += digit.astype(np.int64) * scale
-            scale *= 1024
-    if np.any(sites >= d) or not is_point_sensor(model, sites, probe):
-        return None
-    sites.setflags(write=False)                # cached: shared by every call for this model
-    return sites
-
-
 def check_ring(model: StateSpaceModel, localization) -> np.ndarray:
     """The observations' sites ``(m,)``, after checking that ``localization`` is the ring of the
     model's d sites (``ring_localization(d, sites)``) and that ``model.observe`` is a point
@@ -291,7 +259,7 @@ def check_ring(model: StateSpaceModel, localization) -> np.ndarray:
     if placed.shape != (m,):
         raise ValueError(f"{NAME}: the localization has {placed.size} observations; the model "
                          f"has m={m}")
-    sites = point_sensor_sites(model)
+    sites = _model_sensor_sites(model)
     if sites is None:
         raise ValueError(f"{NAME}: model.observe is not a point sensor (observation j must depend "
                          f"on one site alone: identity, arctan, every k-th site)")
