@@ -26,7 +26,6 @@ import json
 import os
 import subprocess
 import sys
-import time
 
 import jax
 import jax.numpy as jnp
@@ -123,14 +122,8 @@ def scaling_row(dim: int, steps: int) -> dict:
         return local_filter(o, ens, problem=model, key=jax.random.key(2), localization=loc,
                             config=config, check_finite=False)
 
-    run = jax.jit(run)
-    t0 = time.perf_counter()
-    compiled = run.lower(obs).compile()
-    compile_s = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    result = compiled(obs)
-    result.mean.block_until_ready()
-    seconds = (time.perf_counter() - t0) / steps
+    result, seconds, compile_s = timed(jax.jit(run), obs)
+    seconds /= steps
     err = jnp.sqrt(jnp.mean((result.mean - truth[1:]) ** 2, -1))
     return {"dim": dim, "steps": steps, "seconds_per_step": seconds, "compile_s": compile_s,
             "device": str(jax.devices()[0]), "peak_rss_mib": peak_rss_mib(),
