@@ -77,8 +77,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None):
     args = build_parser().parse_args(argv)
     counts = list(args.particles)
-    print("| problem | particles per coordinate | shocks modelled | runs | RMSE | per run | s (with "
-          "compile) |\n|---|---|---|---|---|---|---|", flush=True)
+    print("| problem | particles per coordinate | shocks modelled | runs | RMSE | per run | s "
+          "(compile excluded) |\n|---|---|---|---|---|---|---|", flush=True)
     rows = []
     for name in args.problems:
         rows += convergence(name, args.runs, counts)
