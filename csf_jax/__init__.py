@@ -17,6 +17,9 @@ Entry points:
     GPUs or hosts; docs/scale_out.md).
   ``csf_jax.local_filter``: the local CSF, linear in d (a sparse Gaussian prior from local
     regressions, a probability-flow sampler); ``LocalCSFConfig``.
+  ``csf_jax.local_transform_filter``: the local CSF in the LETKF's ensemble space (the LETKF
+    with a linear sensor; a Levenberg-Marquardt mode and a per-member flow with a nonlinear one);
+    ``LocalTransformConfig``.
   ``csf_jax.reference_filter``: the near-exact per-coordinate filter of the tables' reference row.
   ``csf_jax.gaussian_prior()``: CSF's prior as the ensemble's own Gaussian (``filter(..., prior=)``).
 """
@@ -30,6 +33,7 @@ from csf_jax.filters import (
                              LETKFConfig,
                              LocalCSFConfig,
                              Localization,
+                             LocalTransformConfig,
                              ReferenceConfig,
                              SFConfig,
                              ensemble_kalman_filter,
@@ -37,6 +41,7 @@ from csf_jax.filters import (
                              kalman_filter,
                              letkf,
                              local_filter,
+                             local_transform_filter,
                              particle_filter,
                              reference_filter,
                              ring_localization,
@@ -85,4 +90,5 @@ __all__ = ["CSFConfig", "FilterResult", "GuidanceConfig", "Likelihood", "Mixture
            "gaussian_process_noise", "gaussian_prior", "init_params", "kalman_filter",
            "learned_prior", "load_pretrained", "log_likelihood", "metrics", "particle_filter", "problems",
            "propagate", "reference_filter", "rmse", "score_filter", "shock_steps", "simulate",
-           "sharded_letkf", "site_mesh", "gather_result", "ensf", "ENSFConfig"]
+           "sharded_letkf", "site_mesh", "gather_result", "ensf", "ENSFConfig",
+           "local_transform_filter", "LocalTransformConfig"]

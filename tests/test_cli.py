@@ -13,7 +13,7 @@ import sys
 import pytest
 
 JOBS = ("ablate", "bench", "compile_time", "ensf_l96", "gaussian_loss", "guidance_study", "lorenz96",
-        "lorenz96_ablation", "lorenz96_csf", "make_pretrained", "own_prior", "posterior_quality",
+        "lorenz96_ablation", "lorenz96_csf", "lorenz96_transform", "make_pretrained", "own_prior", "posterior_quality",
         "prior_quality", "reference", "robust_table", "run", "scale_out", "step_parts", "table",
         "train", "tutorial", "zoo")
 

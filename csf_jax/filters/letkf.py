@@ -184,10 +184,19 @@ def gaspari_cohn(r):
     return np.clip(out, 0.0, 1.0)
 
 
+DENSE_MAX = 2 ** 26        # d m above this: local_obs searches sorted positions (no d x m array)
+
+
 @functools.lru_cache(maxsize=32)
 def local_obs(loc: Localization, radius: float):
     """For every state site, the observations in reach: ``index (d, W)`` int32 and taper
-    ``weight (d, W)`` float (0 pads sites with fewer than W)."""
+    ``weight (d, W)`` float (0 pads sites with fewer than W). In reach means a positive taper;
+    they are ordered by decreasing taper, ties by observation index. Above ``DENSE_MAX`` the
+    candidates come from a search of the sorted positions, in ``O((d + m) log m + d W)`` memory
+    and time, where the dense form would build a d x m distance array (75 GiB at d = m = 10^5)."""
+    wraps = loc.period is not None and 4.0 * radius >= float(loc.period)
+    if len(loc.state) * len(loc.obs) > DENSE_MAX and not wraps:
+        return _sparse_local_obs(loc, radius)
     s = np.asarray(loc.state)[:, None]
     o = np.asarray(loc.obs)[None, :]
     dist = np.abs(s - o)
@@ -198,6 +207,35 @@ def local_obs(loc: Localization, radius: float):
     index = np.argsort(-taper, axis=1, kind="stable")[:, :width].astype(np.int32)
     weight = np.take_along_axis(taper, index, axis=1)
     return index, weight
+
+
+def _sparse_local_obs(loc: Localization, radius: float):
+    """``local_obs`` by binary search: each site's candidates are the observations whose positions
+    lie within ``2 radius`` (the taper's support), found in the sorted positions, repeated one
+    period to either side on a ring (the taper's support shorter than the ring, so each
+    observation is a candidate once)."""
+    state = np.asarray(loc.state, np.float64)
+    pos = np.asarray(loc.obs, np.float64)
+    ids = np.argsort(pos, kind="stable")
+    pos_sorted, ids_sorted = pos[ids], ids
+    if loc.period is not None:
+        period = float(loc.period)
+        pos_sorted = np.concatenate([pos_sorted - period, pos_sorted, pos_sorted + period])
+        ids_sorted = np.concatenate([ids, ids, ids])
+    reach = 2.0 * radius
+    lo = np.searchsorted(pos_sorted, state - reach, side="right")
+    hi = np.searchsorted(pos_sorted, state + reach, side="left")
+    width = max(1, int((hi - lo).max()))
+    cand = np.minimum(lo[:, None] + np.arange(width), len(pos_sorted) - 1)
+    inside = np.arange(width)[None, :] < (hi - lo)[:, None]
+    dist = np.abs(state[:, None] - pos_sorted[cand])
+    taper = np.where(inside, gaspari_cohn(dist / radius), 0.0)
+    obs_id = ids_sorted[cand]
+    order = np.lexsort((obs_id, -taper), axis=1)
+    weight = np.take_along_axis(taper, order, axis=1)
+    index = np.take_along_axis(obs_id, order, axis=1)
+    keep = max(1, int((weight > 0).sum(axis=1).max()))
+    return index[:, :keep].astype(np.int32), weight[:, :keep]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -249,16 +287,22 @@ class LETKFStatic(NamedTuple):
     localization: Localization
 
 
-def _init(model, static: LETKFStatic, inflation, ensemble, key):
+def ensemble_state(model, static, inflation, ensemble, key):
+    """A transform filter's ``init``: its state is the ensemble itself."""
     return ensemble, key
+
+
+def inflated_forecast(model: StateSpaceModel, key, ensemble, inflation):
+    """The propagated ``ensemble (N, d)`` with its anomalies scaled by ``inflation`` (traced)."""
+    forecast = propagate(model, key, ensemble).astype(ensemble.dtype)
+    center = forecast.mean(0)
+    return center + inflation.astype(ensemble.dtype) * (forecast - center)
 
 
 def _step(model: StateSpaceModel, static: LETKFStatic, inflation, ensemble, y, key, time):
     """Forecast, inflate and analyse every site of ``ensemble (N, d)`` on ``y (m,)``."""
     index, weight = local_obs(static.localization, static.radius)
-    forecast = propagate(model, key, ensemble).astype(ensemble.dtype)
-    center = forecast.mean(0)
-    forecast = center + inflation.astype(ensemble.dtype) * (forecast - center)
+    forecast = inflated_forecast(model, key, ensemble, inflation)
     post = letkf_analysis(forecast, y, model, jnp.asarray(index), weight)
     return post, StepOutput(post.mean(0), post.std(0, ddof=1), post)
 
@@ -270,7 +314,7 @@ def _check(model: StateSpaceModel, static: LETKFStatic) -> None:
     check_standin("letkf")(model, static)
 
 
-LETKF = Method("letkf", _init, _step, _check, label="LETKF")
+LETKF = Method("letkf", ensemble_state, _step, _check, label="LETKF")
 
 
 def letkf(obs, ensemble, *, problem: StateSpaceModel, key, localization: Localization,
