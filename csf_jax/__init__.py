@@ -77,7 +77,7 @@ from csf_jax.ssm import (
 from csf_jax.trained import Pretrained, TrainedPrior, load_prior
 from csf_jax.training import DatasetConfig, TrainConfig, train_prior
 
-__version__ = "0.4.0"
+__version__ = "0.5.0"
 
 __all__ = ["CSFConfig", "FilterResult", "GuidanceConfig", "Likelihood", "MixtureConfig",
            "NetworkConfig", "ObservationNoise", "ROBUST", "Step", "poisson_likelihood",
