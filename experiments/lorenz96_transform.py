@@ -26,10 +26,13 @@ markdown tables.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
 import platform
+import subprocess
+import sys
 import time
 
 import jax
@@ -90,8 +93,8 @@ def _runner(model, method: str, localization, radius: float, config: LocalTransf
         m, static = LETKF, LETKFStatic(float(radius), localization)
     else:
         m = LOCAL_TRANSFORM
-        static = TransformStatic(LocalTransformConfig(**{**config.__dict__, "radius": radius,
-                                                         "inflation": 1.0}), localization)
+        static = TransformStatic(dataclasses.replace(config, radius=radius, inflation=1.0),
+                                 localization)
     return jax.jit(lambda o, e, k, infl: driver.run(
         m, o, e, model=model, key=k, config=static, params=infl, check_finite=False).mean)
 
@@ -240,8 +243,6 @@ def scaling_cell(dim: int, steps: int, radius: float, inflation: float) -> dict:
     tag = f"scaling_d{dim}_K{steps}_r{radius}_i{inflation}"
 
     def compute():
-        import subprocess
-        import sys
         code = (f"import json; from experiments.lorenz96_transform import _scale; "
                 f"print(json.dumps(_scale({dim}, {steps}, {radius}, {inflation})))")
         out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True,
@@ -326,7 +327,7 @@ def build_parser():
 def main(argv=None):
     args = build_parser().parse_args(argv)
     command = "python -m experiments.lorenz96_transform " + " ".join(
-        argv if argv is not None else __import__("sys").argv[1:])
+        argv if argv is not None else sys.argv[1:])
     t0 = time.time()
     ensf_part = None
     if "standard" in args.parts:
