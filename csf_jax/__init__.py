@@ -22,10 +22,13 @@ Entry points:
     ``LocalTransformConfig``.
   ``csf_jax.reference_filter``: the near-exact per-coordinate filter of the tables' reference row.
   ``csf_jax.gaussian_prior()``: CSF's prior as the ensemble's own Gaussian (``filter(..., prior=)``).
+  ``csf_jax.CovarianceConfig``: the ensemble covariance's estimator for small ensembles (sample,
+    Ledoit-Wolf shrunk, localised; ``CSFConfig.covariance``).
 """
 
 # _threads first: one OpenBLAS thread for jaxlib's LAPACK kernels (see csf_jax._threads)
 from csf_jax import _threads, metrics, problems  # noqa: F401
+from csf_jax.covariance import CovarianceConfig
 from csf_jax.filters import (
                              CSFConfig,
                              ENSFConfig,
@@ -91,4 +94,4 @@ __all__ = ["CSFConfig", "FilterResult", "GuidanceConfig", "Likelihood", "Mixture
            "learned_prior", "load_pretrained", "log_likelihood", "metrics", "particle_filter", "problems",
            "propagate", "reference_filter", "rmse", "score_filter", "shock_steps", "simulate",
            "sharded_letkf", "site_mesh", "gather_result", "ensf", "ENSFConfig",
-           "local_transform_filter", "LocalTransformConfig"]
+           "local_transform_filter", "LocalTransformConfig", "CovarianceConfig"]

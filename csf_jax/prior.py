@@ -24,6 +24,8 @@ import jax
 import jax.numpy as jnp
 
 from csf_jax import _linalg, networks
+from csf_jax.covariance import SAMPLE, CovarianceConfig
+from csf_jax.covariance import estimate as estimate_covariance
 from csf_jax.sde import marginal_std
 
 
@@ -81,20 +83,11 @@ class GaussianContext(NamedTuple):
     cov: jax.Array
 
 
-def _sample_moments(ensemble, jitter: float):
-    """Mean ``(d,)``, sample covariance ``(d, d)`` and the diagonal floor that keeps a collapsed or
-    rank-deficient ensemble's covariance positive definite: ``jitter`` times the mean variance plus
-    a tiny absolute amount."""
-    n, d = ensemble.shape
-    mean = ensemble.mean(0)
-    centred = ensemble - mean
-    cov = centred.T @ centred / max(n - 1, 1)
-    return mean, cov, jitter * jnp.trace(cov) / d + jnp.finfo(ensemble.dtype).tiny ** 0.5
-
-
-def ensemble_moments(ensemble, jitter: float = 1e-6) -> GaussianContext:
-    """Mean and sample covariance of ``ensemble (N, d)``, the floor on its diagonal."""
-    mean, cov, floor = _sample_moments(ensemble, jitter)
+def ensemble_moments(ensemble, jitter: float = 1e-6,
+                     covariance: CovarianceConfig = SAMPLE) -> GaussianContext:
+    """Mean and covariance (``covariance``'s estimator) of ``ensemble (N, d)``, the floor on its
+    diagonal."""
+    mean, cov, floor = estimate_covariance(ensemble, covariance, jitter)
     return GaussianContext(mean, cov + floor * jnp.eye(ensemble.shape[-1], dtype=ensemble.dtype))
 
 
@@ -110,12 +103,13 @@ def gaussian_score(x, ctx: GaussianContext, sigma):
 
 
 @functools.cache
-def gaussian_prior(sigma_max: float = 25.0) -> PriorScore:
-    """The ensemble's own Gaussian, VE-diffused: score ``-(C + sigma_t^2 I)^{-1} (x - m)``."""
+def gaussian_prior(sigma_max: float = 25.0, covariance: CovarianceConfig = SAMPLE) -> PriorScore:
+    """The ensemble's own Gaussian, VE-diffused: score ``-(C + sigma_t^2 I)^{-1} (x - m)``, with
+    ``C`` by ``covariance`` (``csf_jax.covariance``: sample, Ledoit-Wolf shrunk or localised)."""
 
     def condition(params, centers, ensemble, process_std):
         del params, centers, process_std
-        return ensemble_moments(ensemble)
+        return ensemble_moments(ensemble, covariance=covariance)
 
     def score(params, ctx, x, t):
         del params
@@ -148,18 +142,20 @@ def residual_score(params, config: networks.NetworkConfig, ctx: ResidualContext,
 
 @functools.cache
 def learned_prior(config: networks.NetworkConfig = networks.NetworkConfig(),
-                  encode_particles: int | None = None) -> PriorScore:
+                  encode_particles: int | None = None,
+                  covariance: CovarianceConfig = SAMPLE) -> PriorScore:
     """The conditional score net ``s(x, t; c)`` with ``c`` the set encoder's code of the ensemble.
 
     encode_particles: the encoder sees the first n particles of the ensemble (None: all); with
-    ``config.base == "gaussian"`` the moments of the base come from all of them.
+    ``config.base == "gaussian"`` the moments of the base come from all of them, the covariance
+    by ``covariance``'s estimator.
     """
 
     def condition(params, centers, ensemble, process_std):
         del centers, process_std
         code = networks.encode(params, ensemble[:encode_particles], config)
         if config.base == "gaussian":
-            return ResidualContext(code, ensemble_moments(ensemble))
+            return ResidualContext(code, ensemble_moments(ensemble, covariance=covariance))
         return code
 
     def score(params, ctx, x, t):
@@ -188,15 +184,16 @@ def unconditional_prior(config: networks.NetworkConfig = networks.NetworkConfig(
     return PriorScore("unconditional", condition, score)
 
 
-def gaussian_precision(ensemble, inflation: float = 0.0, jitter: float = 1e-6):
+def gaussian_precision(ensemble, inflation: float = 0.0, jitter: float = 1e-6,
+                       covariance: CovarianceConfig = SAMPLE):
     """Precision ``(C + inflation^2 I)^{-1}`` of the ensemble's Gaussian; ``ensemble: (N, d)`` -> (d, d).
 
-    ``C`` is the sample covariance. It gives the Kalman guidance the covariance of ``x_0 | x_t``,
+    ``C`` is the ``covariance`` estimate (default the sample covariance). It gives the Kalman guidance the covariance of ``x_0 | x_t``,
     ``P_t = (C^{-1} + I / sigma_t^2)^{-1}``, exact for a Gaussian prior. ``jitter`` times the mean
     variance (plus a tiny absolute floor) is added to the diagonal, so a collapsed or rank-deficient
     ensemble (N <= d) still gives a finite precision. Plain-jnp Cholesky (``csf_jax._linalg``).
     """
-    _, cov, floor = _sample_moments(ensemble, jitter)
+    _, cov, floor = estimate_covariance(ensemble, covariance, jitter)
     eye = jnp.eye(ensemble.shape[-1], dtype=ensemble.dtype)
     chol = _linalg.cholesky(cov + (inflation ** 2 + floor) * eye)
     return _linalg.cho_solve(chol[None], eye)

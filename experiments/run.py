@@ -185,7 +185,8 @@ def method_fn(method: str, model, config: CSFConfig, sf: SFConfig, pretrained, p
                                               return_ensembles=return_ensembles)
     if method == "csf_gaussian":
         return lambda o, e, k: csf_jax.filter(None, o, e, problem=model, key=k, config=config,
-                                              prior=gaussian_prior(config.sigma_max),
+                                              prior=gaussian_prior(config.sigma_max,
+                                                                   config.covariance),
                                               progress=progress,
                                               return_ensembles=return_ensembles)
     if method == "sf":
@@ -209,7 +210,9 @@ def method_fn(method: str, model, config: CSFConfig, sf: SFConfig, pretrained, p
 # out of fingerprints at that value, so that adding such a field does not invalidate cached runs.
 NEUTRAL_FIELDS = {"base": "none",  # NetworkConfig.base (SFConfig.network): no Gaussian base
                   "proposal_df": None,  # GuidanceConfig.proposal_df: Gaussian proposals
-                  "mixture": None}  # CSFConfig.mixture: no mixture prior
+                  "mixture": None,  # CSFConfig.mixture: no mixture prior
+                  "covariance": {"estimator": "sample", "radius": 2.0,  # CSFConfig.covariance:
+                                 "periodic": False}}  # the sample covariance
 
 
 def _neutral(obj):

@@ -378,7 +378,7 @@ class GaussianBase(NamedTuple):
 
 
 def _sample_moments(ensemble: torch.Tensor, jitter: float):
-    """``csf_jax.prior._sample_moments``: mean ``(d,)``, sample covariance ``(d, d)`` and the floor
+    """``csf_jax.covariance.estimate`` (sample estimator): mean ``(d,)``, sample covariance ``(d, d)`` and the floor
     ``jitter * trace(C) / d + sqrt(tiny)`` of ``ensemble (N, d)``."""
     n, d = ensemble.shape
     mean = ensemble.mean(0)

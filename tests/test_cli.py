@@ -14,7 +14,8 @@ import pytest
 
 JOBS = ("ablate", "bench", "compile_time", "ensf_l96", "gaussian_loss", "guidance_study", "lorenz96",
         "lorenz96_ablation", "lorenz96_csf", "lorenz96_transform", "make_pretrained", "own_prior", "posterior_quality",
-        "prior_quality", "reference", "robust_table", "run", "scale_out", "step_parts", "table",
+        "prior_quality", "reference", "robust_table", "run", "scale_out", "small_ensembles",
+        "step_parts", "table",
         "train", "tutorial", "zoo")
 
 # measurement prose: timings, sizes, speed-ups and quoted errors
@@ -123,6 +124,8 @@ CASES = [
     ("lorenz96_csf", ["--runs", "0"], "--runs", ">= 1"),
     ("lorenz96_csf", ["--steps", "10000000"], "--steps", "GiB"),
     ("lorenz96_ablation", ["--runs", "0"], "--runs", ">= 1"),
+    ("small_ensembles", ["--particles", "1"], "--particles", ">= 2"),
+    ("small_ensembles", ["--methods", "csf,bogus"], "--methods", "bogus"),
     ("lorenz96_ablation", ["--steps", "50"], "--steps", "burn-in"),
     ("own_prior", ["--runs", "0"], "--runs", ">= 1"),
     ("own_prior", ["--runs", "-1"], "--runs", ">= 1"),

@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from csf_jax import _checks, mixture, networks, trained
+from csf_jax.covariance import CovarianceConfig
 from csf_jax.filters.driver import Method, StepOutput, run
 from csf_jax.filters.result import FilterResult
 from csf_jax.guidance import (
@@ -126,6 +127,10 @@ class CSFConfig:
       eight models, where the default loses runs (docs/zoo.md), but 1.5x the reference on the
       triple well (the default: 1.13x). With ``params=None`` its ensemble component is the
       ensemble's Gaussian (the particle components already are the exact mixture).
+    covariance: how the prior ensemble's covariance is estimated wherever the sampler uses the
+      ensemble's Gaussian: the Kalman guidance's precision, the Gaussian prior, a Gaussian-base
+      learned prior's base and the mixture's ensemble component (``csf_jax.CovarianceConfig``:
+      "sample", "ledoit_wolf", "localised"). Default the sample covariance (docs/small_ensembles.md).
     """
 
     reverse_steps: int = 20
@@ -141,6 +146,7 @@ class CSFConfig:
     inflation_statistic: str = "median"
     encode_particles: int | None = 256
     mixture: MixtureConfig | None = None
+    covariance: CovarianceConfig = CovarianceConfig()
 
     def __post_init__(self):
         _checks.check_fields(self)
@@ -214,7 +220,8 @@ def sampler_start(config: CSFConfig, prior_ens, key, y=None, model: StateSpaceMo
     tau = step_inflation(config, prior_ens, y, model, guide)
     if not uses_kalman(config):
         return sigma_1 * noise, SamplerStart(None, tau)
-    return prior_ens + sigma_1 * noise, SamplerStart(gaussian_precision(prior_ens, tau), tau)
+    precision = gaussian_precision(prior_ens, tau, covariance=config.covariance)
+    return prior_ens + sigma_1 * noise, SamplerStart(precision, tau)
 
 
 def ancestral_sample(params, prior: PriorScore, context, model: StateSpaceModel, y, x_init,
@@ -335,10 +342,11 @@ def _prior_for(params, prior: PriorScore | None, network: NetworkConfig | None,
         return prior
     if params is None:
         # with the mixture, the particle components are the exact mixture already
-        return (exact_mixture_prior if config.mixture is None else gaussian_prior)(
-            config.sigma_max)
+        if config.mixture is None:
+            return exact_mixture_prior(config.sigma_max)
+        return gaussian_prior(config.sigma_max, config.covariance)
     return learned_prior(network if network is not None else NetworkConfig(),
-                         config.encode_particles)
+                         config.encode_particles, config.covariance)
 
 
 class CSFStatic(NamedTuple):
@@ -374,7 +382,7 @@ def _step(model: StateSpaceModel, static: CSFStatic, params, state, y, key, time
         config = dataclasses.replace(config, guidance=dataclasses.replace(
             config.guidance, proposal_df=tail_df(model)))
         sample = particle_sampler(model, prior, config, static.shards)
-    moments = ensemble_moments(prior_ens)
+    moments = ensemble_moments(prior_ens, covariance=config.covariance)
     odds = config.mixture.particle_logodds + memory
     sel = mixture.select(model, config.mixture, jax.random.fold_in(key, 3), y, centers, prior_ens,
                          moments.cov, jnp.square(start.tau), odds, guide)

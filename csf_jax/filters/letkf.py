@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from csf_jax import _checks
+from csf_jax.covariance import gaspari_cohn
 from csf_jax.filters.driver import Method, StepOutput, run
 from csf_jax.filters.enkf import check_standin
 from csf_jax.filters.result import FilterResult
@@ -169,19 +170,6 @@ def check_localization(model: StateSpaceModel, localization, name: str, *,
                          f"({wrong.size} of {m} misplaced); give the sites in the sensor's order: "
                          f"ring_localization(d, sites) with sites[j] the site observation j reads")
     return sites
-
-
-def gaspari_cohn(r):
-    """The Gaspari-Cohn fifth-order taper of ``r = distance / half-width`` (1 at 0, 0 from 2 on)."""
-    r = np.abs(np.asarray(r, np.float64))
-    out = np.zeros_like(r)
-    a = r <= 1
-    b = (r > 1) & (r < 2)
-    ra, rb = r[a], r[b]
-    out[a] = -0.25 * ra**5 + 0.5 * ra**4 + 0.625 * ra**3 - 5 / 3 * ra**2 + 1
-    out[b] = (rb**5 / 12 - 0.5 * rb**4 + 0.625 * rb**3 + 5 / 3 * rb**2 - 5 * rb + 4
-              - 2 / 3 / rb)
-    return np.clip(out, 0.0, 1.0)
 
 
 DENSE_MAX = 2 ** 26        # d m above this: local_obs searches sorted positions (no d x m array)
