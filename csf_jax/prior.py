@@ -188,8 +188,9 @@ def gaussian_precision(ensemble, inflation: float = 0.0, jitter: float = 1e-6,
                        covariance: CovarianceConfig = SAMPLE):
     """Precision ``(C + inflation^2 I)^{-1}`` of the ensemble's Gaussian; ``ensemble: (N, d)`` -> (d, d).
 
-    ``C`` is the ``covariance`` estimate (default the sample covariance). It gives the Kalman guidance the covariance of ``x_0 | x_t``,
-    ``P_t = (C^{-1} + I / sigma_t^2)^{-1}``, exact for a Gaussian prior. ``jitter`` times the mean
+    ``C`` is the ``covariance`` estimate (default the sample covariance). It gives the Kalman
+    guidance the covariance of ``x_0 | x_t``, ``P_t = (C^{-1} + I / sigma_t^2)^{-1}``, exact for a
+    Gaussian prior. ``jitter`` times the mean
     variance (plus a tiny absolute floor) is added to the diagonal, so a collapsed or rank-deficient
     ensemble (N <= d) still gives a finite precision. Plain-jnp Cholesky (``csf_jax._linalg``).
     """

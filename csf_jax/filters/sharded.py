@@ -42,7 +42,8 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from csf_jax import _checks
-from csf_jax.filters.letkf import LETKFConfig, Localization, _model_sensor_sites, gaspari_cohn
+from csf_jax.covariance import gaspari_cohn
+from csf_jax.filters.letkf import LETKFConfig, Localization, _model_sensor_sites
 from csf_jax.filters.result import FilterResult, mark_nonfinite
 from csf_jax.ssm import (
     StateSpaceModel,
