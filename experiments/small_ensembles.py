@@ -11,6 +11,9 @@ prints RMSE and RMSE over the near-exact reference's on the same runs. Methods:
 * ``csf_g``, ``csf_g_lw``, ``csf_g_loc<r>``: CSF's sampler with the ensemble's Gaussian prior,
   the covariance the sample one, Ledoit-Wolf shrunk, or localised with Gaspari-Cohn half-width r
   (``CSFConfig.covariance``; the Kalman guidance uses the same covariance);
+  ``csf_g_loc0.5`` is the diagonal covariance (the taper vanishes from ``|i - j| = 1`` on);
+* ``csf_robust``: ``csf_jax.ROBUST`` with the column's config: the mixture prior, whose particle
+  components are the exact forecast law of the N members for i.i.d. process noise;
 * ``enkf``, ``pf``, ``reference``.
 
 Every cell is cached in ``runs/small_ensembles`` (an interrupted job resumes); ``--out`` writes
@@ -28,7 +31,8 @@ import time
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
-from csf_jax import problems  # noqa: E402
+import csf_jax  # noqa: E402
+from csf_jax import ROBUST, gaussian_prior, problems  # noqa: E402
 from csf_jax.covariance import CovarianceConfig  # noqa: E402
 from csf_jax.pretrained import load_pretrained  # noqa: E402
 from experiments import run as run_mod  # first: it sets XLA's host devices before jax loads
@@ -36,8 +40,8 @@ from experiments._cli import int_list, name_list, parser, positive_int  # noqa: 
 
 CACHE = os.path.join("runs", "small_ensembles")
 COLUMNS = ("cauchy", "cubic10_indep", "cubic10_corr", "cubic20_indep", "cubic20_corr")
-METHODS = ("csf", "csf_g", "csf_g_lw", "csf_g_loc1", "csf_g_loc2", "csf_g_loc4", "enkf", "pf",
-           "reference")
+METHODS = ("csf", "csf_g", "csf_g_lw", "csf_g_loc0.5", "csf_g_loc1", "csf_g_loc2", "csf_g_loc4",
+           "csf_robust", "enkf", "pf", "reference")
 
 
 def covariance_of(method: str) -> CovarianceConfig:
@@ -57,6 +61,12 @@ def method_fn(method: str, name: str, model):
         return run_mod.method_fn(method, model, base, None, None, quiet)
     if method == "csf":
         return run_mod.method_fn("csf", model, base, None, load_pretrained(name), quiet)
+    if method == "csf_robust":
+        cfg = dataclasses.replace(base, adaptive_inflation=ROBUST.adaptive_inflation,
+                                  mixture=ROBUST.mixture)
+        prior = None if model.process_noise is None else gaussian_prior(cfg.sigma_max)
+        return lambda o, e, k: csf_jax.filter(None, o, e, problem=model, key=k, config=cfg,
+                                              prior=prior)
     cfg = dataclasses.replace(base, covariance=covariance_of(method))
     return run_mod.method_fn("csf_gaussian", model, cfg, None, None, quiet)
 

@@ -32,6 +32,7 @@ def _check_spread(data):
                                                                           samples.max())
 
 
+@pytest.mark.slow
 def test_prior_figure_plots_the_filters_own_prior_samples(tmp_path):
     data = _prior_data()
     assert data["prior_name"] == "exact_mixture" and 1 <= data["step"] <= 12

@@ -129,6 +129,7 @@ def test_sparse_local_obs_is_the_dense_one(dim, sites, radius):
                                   np.where(s_weight > 0, s_index, -1))
 
 
+@pytest.mark.slow
 def test_jit_vmap_same_key_and_missing():
     model = csf_jax.problems.get("lorenz96_arctan", dim=20, num_steps=4, burn_in=0)
     _, obs = csf_jax.simulate(model, jax.random.key(0))
