@@ -190,9 +190,9 @@ def gaussian_precision(ensemble, inflation: float = 0.0, jitter: float = 1e-6,
 
     ``C`` is the ``covariance`` estimate (default the sample covariance). It gives the Kalman
     guidance the covariance of ``x_0 | x_t``, ``P_t = (C^{-1} + I / sigma_t^2)^{-1}``, exact for a
-    Gaussian prior. ``jitter`` times the mean
-    variance (plus a tiny absolute floor) is added to the diagonal, so a collapsed or rank-deficient
-    ensemble (N <= d) still gives a finite precision. Plain-jnp Cholesky (``csf_jax._linalg``).
+    Gaussian prior. ``jitter`` times the mean variance (plus a tiny absolute floor) is added to the
+    diagonal, so a collapsed or rank-deficient ensemble (N <= d) still gives a finite precision.
+    Plain-jnp Cholesky (``csf_jax._linalg``).
     """
     _, cov, floor = estimate_covariance(ensemble, covariance, jitter)
     eye = jnp.eye(ensemble.shape[-1], dtype=ensemble.dtype)

@@ -28,15 +28,15 @@ import os
 import sys
 import time
 
-import jax  # noqa: E402
-import numpy as np  # noqa: E402
+import jax
+import numpy as np
 
-import csf_jax  # noqa: E402
-from csf_jax import ROBUST, gaussian_prior, problems  # noqa: E402
-from csf_jax.covariance import CovarianceConfig  # noqa: E402
-from csf_jax.pretrained import load_pretrained  # noqa: E402
-from experiments import run as run_mod  # first: it sets XLA's host devices before jax loads
-from experiments._cli import int_list, name_list, parser, positive_int  # noqa: E402
+import csf_jax
+from csf_jax import ROBUST, gaussian_prior, problems
+from csf_jax.covariance import CovarianceConfig
+from csf_jax.pretrained import load_pretrained
+from experiments import run as run_mod
+from experiments._cli import int_list, name_list, parser, positive_int
 
 CACHE = os.path.join("runs", "small_ensembles")
 COLUMNS = ("cauchy", "cubic10_indep", "cubic10_corr", "cubic20_indep", "cubic20_corr")
