@@ -17,6 +17,7 @@ import numbers
 import os
 import types
 import typing
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -154,7 +155,10 @@ def check_key(key, name: str = "filter") -> None:
 
 
 def check_result_finite(name: str, result) -> None:
-    """After a concrete run: raise FloatingPointError at the first step whose mean is non-finite."""
+    """After a concrete run: raise FloatingPointError at the first step whose mean is non-finite
+    (``mark_nonfinite`` has made it NaN from the first bad step on). The message names no setting
+    to switch to: which one helps depends on why the run diverged, and a guess can be worse (the
+    clipped DPS guidance is far less accurate than the default Kalman guidance where both run)."""
     if not is_concrete(result.mean):
         return
     mean = np.asarray(result.mean)
@@ -163,9 +167,10 @@ def check_result_finite(name: str, result) -> None:
         k = int(np.argmax(bad))
         raise FloatingPointError(
             f"{name}: the filtered mean became non-finite at step {k + 1} of {mean.shape[0]} "
-            f"(the ensemble diverged). Check the model's drift for blow-up and, for CSF, use the "
-            f"stable guidance (GuidanceConfig(mode='clipped')); pass check_finite=False to get the "
-            f"raw result instead.")
+            f"(the ensemble diverged: the model's drift or the update overflowed on a member). "
+            f"Check the drift on the states the ensemble reaches (check_finite=False with "
+            f"return_ensembles=True gives the raw result and the members) and compare with "
+            f"csf_jax.ensemble_kalman_filter on the same data.")
 
 
 def compute_dtype(*dtypes):
@@ -199,9 +204,9 @@ def promote_tree(obs, state):
 
 def check_sigma_max(network, config, name: str) -> None:
     """A learned score net is trained for one VE SDE scale: the sampler must use the same."""
-    if network.sigma_max != config.sigma_max:
+    if network.sigma_max != config.sampler.sigma_max:
         raise ValueError(f"{name}: the network config has sigma_max={network.sigma_max}, but the "
-                         f"sampler's config.sigma_max={config.sigma_max}; they must agree")
+                         f"sampler's config.sampler.sigma_max={config.sampler.sigma_max}; they must agree")
 
 
 class FieldTypeError(TypeError, ValueError):
@@ -333,3 +338,26 @@ def read_json_record(directory: str, what: str, missing: str, remedy: str = "") 
     if not isinstance(record, dict):
         raise ValueError(f"{what} {directory}: {path} must hold a JSON object{tail}")
     return record
+
+
+def renamed_keywords(**renames):
+    """Decorator: accept each keyword's old name (``old="new"``) for one version, with a
+    ``DeprecationWarning`` naming the new one; both at once is a TypeError."""
+
+    def wrap(fn):
+        @functools.wraps(fn)
+        def inner(*args, **kwargs):
+            for old, new in renames.items():
+                if old in kwargs:
+                    if new in kwargs:
+                        raise TypeError(f"{fn.__name__}: got both {old}= and {new}=; pass {new}= "
+                                        f"only")
+                    warnings.warn(f"{fn.__name__}({old}=...) is now {fn.__name__}({new}=...); "
+                                  f"the old name goes in the next version", DeprecationWarning,
+                                  stacklevel=2)
+                    kwargs[new] = kwargs.pop(old)
+            return fn(*args, **kwargs)
+
+        return inner
+
+    return wrap

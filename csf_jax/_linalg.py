@@ -3,28 +3,50 @@ guidance.
 
 Cholesky factorisation and triangular solves, vectorised over leading batch axes. They replace the
 LAPACK custom calls of ``jnp.linalg.cholesky`` and ``jax.scipy.linalg.solve_triangular`` inside
-the sampler's scans, which deadlocked XLA's CPU runtime (jax 0.10.2, 2-core CPU: vmapped over 16
-runs of 1000 particles, every worker thread asleep and the result never ready; reproduced with
-``--xla_cpu_enable_concurrency_optimized_scheduler`` on and off, gone with these functions).
+the sampler's scans, which deadlocked XLA's CPU runtime under jax 0.10.2 (every worker thread
+asleep and the result never ready, with ``--xla_cpu_enable_concurrency_optimized_scheduler`` on
+and off; gone with these functions; the reproduction is on docs/design.md).
 
 Two forms with the same arithmetic up to rounding: up to ``UNROLL_MAX`` columns, the column steps
 unrolled in Python; above it, a ``lax.fori_loop`` over columns, whose program (and so compile
-time) is the same for every d. Unrolled, compile time grows faster than d^2 (the default filter
-at N = 200: 13 s at d = 10, 35 s at d = 20 and minutes at d = 40, against 3-4 s for the loops at
-any d; ``python -m experiments.compile_time``, docs/benchmark.md). The unrolled form is kept up
-to d = 20 because the committed results of the paper's problems (d <= 20) were computed with it:
-with the loops they move in the third digit (rounding differences grow along a filter run).
+time) is the same for every d. Unrolled, the program grows with d and its compile time faster
+than d^2, so above ``UNROLL_MAX`` the loops compile far sooner (measured on docs/bench/history.md,
+"Compile time against d"). The unrolled form is kept up to d = 20 because the committed results
+of the paper's problems (d <= 20) were computed with it: with the loops they would change by
+rounding differences, which grow along a filter run (docs/bench/history.md).
 """
 
 
 from __future__ import annotations
 
+import functools
+
+import jax
 import jax.numpy as jnp
 from jax import lax
 
 UNROLL_MAX = 20
+PRECISION = "highest"
 
 
+def precise(fn):
+    """Decorator: ``fn``'s matrix products are traced at ``PRECISION`` ("highest": full float32).
+
+    On GPUs, float32 matmuls default to TF32 (a 10-bit mantissa), too coarse for what this wraps:
+    Cholesky factors, Kalman gains, covariances and the ensemble's Gaussian, whose errors the
+    filters compound step after step. The score network keeps the default. On CPUs the two
+    precisions are the same arithmetic.
+    """
+
+    @functools.wraps(fn)
+    def inner(*args, **kwargs):
+        with jax.default_matmul_precision(PRECISION):
+            return fn(*args, **kwargs)
+
+    return inner
+
+
+@precise
 def cholesky(a):
     """Lower Cholesky factor ``l`` with ``l l^T = a``; ``a: (..., d, d)`` symmetric positive definite.
 
@@ -47,16 +69,19 @@ def cholesky(a):
     return lax.fori_loop(0, d, column, jnp.zeros_like(a))
 
 
+@precise
 def solve_lower(l, b):
     """``x`` with ``l x = b``; ``l: (..., d, d)`` lower triangular, ``b: (..., d)``."""
     return _substitute(l, b, transposed=False)
 
 
+@precise
 def solve_lower_transposed(l, b):
     """``x`` with ``l^T x = b``; ``l: (..., d, d)`` lower triangular, ``b: (..., d)``."""
     return _substitute(l, b, transposed=True)
 
 
+@precise
 def cho_solve(l, b):
     """``x`` with ``l l^T x = b``."""
     return solve_lower_transposed(l, solve_lower(l, b))

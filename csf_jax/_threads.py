@@ -2,8 +2,9 @@
 
 On CPU, ``jnp.linalg`` and ``jax.scipy.linalg`` (the EnKF's Cholesky, the LETKF's eigh) call LAPACK
 through scipy's bundled OpenBLAS, which starts its own worker threads beside XLA's. On small
-matrices they only contend: the EnKF's analysis at Lorenz-96 d = 40, N = 40 took 1.37 ms with
-OpenBLAS's default threads and 0.26 ms with one (2-core CPU; docs/benchmark.md). So importing
+matrices they only contend: the EnKF's analysis at Lorenz-96 d = 40, N = 40 runs several times
+slower with OpenBLAS's default threads than with one (measured on docs/bench/history.md,
+"Threads"). So importing
 csf_jax sets ``OPENBLAS_NUM_THREADS=1`` when the variable is unset and scipy's OpenBLAS is not yet
 loaded, or, when it is, sets its thread count through its own ``set_num_threads``. A value the
 user put in ``OPENBLAS_NUM_THREADS`` is left alone.

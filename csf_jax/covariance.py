@@ -24,7 +24,7 @@ import functools
 import jax.numpy as jnp
 import numpy as np
 
-from csf_jax import _checks
+from csf_jax import _checks, _linalg
 
 ESTIMATORS = ("sample", "ledoit_wolf", "localised")
 
@@ -33,10 +33,11 @@ ESTIMATORS = ("sample", "ledoit_wolf", "localised")
 class CovarianceConfig:
     """How the prior ensemble's covariance is estimated (module docstring).
 
-    estimator: one of ``ESTIMATORS``.
-    radius: the Gaspari-Cohn half-width ``c`` in index units for ``"localised"`` (correlations
-      vanish from ``|i - j| = 2c`` on); unused otherwise.
-    periodic: ``"localised"`` measures ``|i - j|`` on a ring of length d (Lorenz-96-like states).
+    Attributes:
+      estimator: one of ``ESTIMATORS``.
+      radius: the Gaspari-Cohn half-width ``c`` in index units for ``"localised"`` (correlations
+        vanish from ``|i - j| = 2c`` on); unused otherwise.
+      periodic: ``"localised"`` measures ``|i - j|`` on a ring of length d (Lorenz-96-like states).
     """
 
     estimator: str = "sample"
@@ -56,6 +57,7 @@ class CovarianceConfig:
 SAMPLE = CovarianceConfig()
 
 
+@_linalg.precise
 def ledoit_wolf_intensity(centred):
     """Ledoit-Wolf (2004) shrinkage intensity in ``[0, 1]`` of ``centred (N, d)`` (mean removed).
 
@@ -100,6 +102,7 @@ def localisation_taper(dim: int, radius: float, periodic: bool = False) -> np.nd
     return taper
 
 
+@_linalg.precise
 def estimate(ensemble, config: CovarianceConfig = SAMPLE, jitter: float = 1e-6):
     """Mean ``(d,)``, covariance ``(d, d)`` by ``config``, and the diagonal floor (``jitter`` times
     the mean variance plus a tiny absolute amount) that keeps a collapsed or rank-deficient

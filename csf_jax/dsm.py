@@ -29,7 +29,8 @@ def dsm_fit(key, ensemble, score_vars, opt_state, optimizer: optax.GradientTrans
     shards > 1: each step's loss and gradient are computed data-parallel, the batch split over the
     first ``shards`` local devices (``jax.shard_map``, gradients averaged with ``pmean``): the same
     draws and the same update up to float summation order, for one fit on several devices (one
-    XLA host device per CPU core: a batch of 256 through this net keeps only one core busy).
+    XLA host device per CPU core: a training batch through this small net does not keep several
+    cores busy on its own; docs/design.md).
 
     Returns ``(score_vars, opt_state, losses (steps,))``.
     """

@@ -39,24 +39,27 @@ DPS_MODES = ("raw", "clipped", "normalized", "none")
 class GuidanceConfig:
     """How the likelihood gradient enters the reverse step.
 
-    mode: "kalman" (default: posterior Tweedie by Fisher scoring, ancestral sampler), or a DPS form
-      with the Euler-Maruyama sampler: "clipped", "raw" (the paper's Alg. 2), "normalized" (Chung
-      et al.), "none" (prior sampling only).
-    scale: multiplies the likelihood gradient (zeta in DPS; ignored by "kalman").
-    clip: for "clipped", the cap on a particle's guidance displacement per step, in units of the
-      step's noise scale ``g(t) sqrt(dt) sqrt(d)``.
-    iterations: for "kalman", Fisher-scoring steps per reverse step, warm-started from the previous
-      reverse step's solution (so the sampler as a whole makes L x iterations of them). Default 1:
-      against 2, the same RMSE on the double well and cubic10_indep, better on Cauchy, 27% less
-      time at d = 10 (docs/ablation.md).
-    proposals: for "kalman", K draws per particle from the Laplace Gaussian ``N(u, A^{-1})``, of
-      which one is kept by importance resampling against ``N(x0_hat, P) p(y | x_0)`` (the exact
-      likelihood). The Laplace Gaussian sits at the mode; a skewed posterior (the cubic sensor)
-      needs its mean: K = 1 keeps the Laplace draw itself, K = 8 corrects most of the bias (README).
-    proposal_df: None (default): the K candidates are Laplace draws, Gaussian around the mode. A
-      positive int: Student-t with these degrees of freedom per whitened coordinate, for
-      heavy-tailed likelihoods (Cauchy noise: 1), whose posteriors have tails the Gaussian never
-      proposes: with it the resampled ensemble comes out too narrow (docs/ablation.md).
+    Attributes:
+      mode: "kalman" (default: posterior Tweedie by Fisher scoring, ancestral sampler), or a DPS form
+        with the Euler-Maruyama sampler: "clipped", "raw" (the paper's Alg. 2), "normalized" (Chung
+        et al.), "none" (prior sampling only).
+      scale: multiplies the likelihood gradient (zeta in DPS; ignored by "kalman").
+      clip: for "clipped", the cap on a particle's guidance displacement per step, in units of the
+        step's noise scale ``g(t) sqrt(dt) sqrt(d)``.
+      iterations: for "kalman", Fisher-scoring steps per reverse step, warm-started from the previous
+        reverse step's solution (so the sampler as a whole makes L x iterations of them). Default 1:
+        against 2, the same RMSE on the double well and cubic10_indep, a better one on Cauchy, and
+        less time, each iteration being a (d, d) Cholesky factorisation per particle (measured on
+        docs/ablation.md).
+      proposals: for "kalman", K draws per particle from the Laplace Gaussian ``N(u, A^{-1})``, of
+        which one is kept by importance resampling against ``N(x0_hat, P) p(y | x_0)`` (the exact
+        likelihood). The Laplace Gaussian sits at the mode; a skewed posterior (the cubic sensor)
+        needs its mean: K = 1 keeps the Laplace draw itself, K = 8 (the default) corrects most of
+        the bias (measured on docs/design.md, "The sampler").
+      proposal_df: None (default): the K candidates are Laplace draws, Gaussian around the mode. A
+        positive int: Student-t with these degrees of freedom per whitened coordinate, for
+        heavy-tailed likelihoods (Cauchy noise: 1), whose posteriors have tails the Gaussian never
+        proposes: with it the resampled ensemble comes out too narrow (docs/ablation.md).
     """
 
     mode: str = "kalman"
@@ -125,6 +128,7 @@ def guidance_displacement(config: GuidanceConfig, grad, loglik, g2dt, noise_scal
     return step * jnp.minimum(1.0, cap / jnp.maximum(norm, 1e-30))
 
 
+@_linalg.precise
 def kalman_tweedie(x0_hat, prior_precision, loglik_fn, observe_fn, weight_fn, u_init, guide,
                    iterations: int, damped: bool = False):
     """Posterior Tweedie estimate ``E[x_0 | x_t, y]`` and the Cholesky factor of its precision.
@@ -198,6 +202,7 @@ def student_t(key, df: int, shape, dtype):
     return g[0] / jnp.sqrt(jnp.mean(g[1:] * g[1:], 0))
 
 
+@_linalg.precise
 def importance_weights(key, mean, precision, u, chol, loglik_fn, guide, proposals: int,
                        df: int | None = None, normalized: bool = False):
     """K candidates per row from the Laplace Gaussian ``N(u, A^{-1})`` (or its Student-t
@@ -235,6 +240,7 @@ def _log_det(precision):
     return 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol, axis1=-2, axis2=-1)), -1)
 
 
+@_linalg.precise
 def resample_posterior(key, x0_hat, prior_precision, u, chol, loglik_fn, guide, proposals: int,
                        df: int | None = None):
     """One draw per particle of ``N(x_0; x0_hat, P) p(y | x_0)`` by importance resampling.

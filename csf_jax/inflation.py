@@ -22,12 +22,16 @@ threshold 2, the 95% point of a chi-square with one degree of freedom), and then
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 
+from csf_jax import _checks, _linalg
 from csf_jax.ssm import StateSpaceModel, gaussian_standin, is_additive, observed
 
 
+@_linalg.precise
 def innovation_statistic(prior_ens, y, model: StateSpaceModel, base: float = 0.0):
     """``(e^2 (m,), v (m,), g (m,))`` of the module docstring for ``prior_ens: (N, d)``, ``y: (m,)``.
 
@@ -87,3 +91,34 @@ def adaptive_inflation(prior_ens, y, model: StateSpaceModel, base: float = 0.0,
     _, s_hi = jax.lax.fori_loop(0, iterations, bisect, (lo, hi))
     s = jnp.where(surprised, jnp.exp(s_hi), 0.0)
     return jnp.sqrt(base ** 2 + s)
+
+
+@dataclasses.dataclass(frozen=True)
+class InflationConfig:
+    """CSF's prior inflation ``tau`` per filter step (``CSFConfig.inflation``; module docstring).
+
+    Attributes:
+      base: tau_0 >= 0, the fixed part. The prior score is evaluated at the noise level
+        ``sqrt(sigma_t^2 + tau^2)``: the prior convolved with ``N(0, tau^2 I)``, the score-based form
+        of the ensemble filters' covariance inflation. 0 is the paper's sampler and the exact Bayes
+        update between surprises.
+      adaptive: add ``s`` of the module docstring per step (``tau^2 = base^2 + s``): ``s > 0`` only
+        when the observation is improbable under the prior ensemble (an unmodelled shock).
+      threshold: the trigger, in standard deviations of the chi-square innovation statistic above
+        its mean.
+      max: cap on the adaptive part of tau.
+      statistic: "median" (a majority of coordinates must be surprised; robust to heavy-tailed
+        noise, where "chi2" reads one outlier as a shock) or "chi2" (the innovation's chi-square sum).
+    """
+
+    base: float = 0.0
+    adaptive: bool = True
+    threshold: float = 2.0
+    max: float = 10.0
+    statistic: str = "median"
+
+    def __post_init__(self):
+        _checks.check_fields(self, nonnegative=("base",), positive=("max",))
+        if self.statistic not in STATISTICS:
+            raise ValueError(f"InflationConfig.statistic must be one of {STATISTICS}, got "
+                             f"{self.statistic!r}")

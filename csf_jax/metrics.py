@@ -9,8 +9,10 @@ import jax.numpy as jnp
 def rmse(estimate, truth):
     """Paper's RMSE: ``sqrt(mean_{runs, steps} ||x_hat - x||^2)``.
 
-    estimate, truth: (..., K, d) with any leading run axes; truth must already be aligned with the
-    estimate (pass ``truth[..., 1:, :]`` for a simulate() trajectory, which includes x_0).
+    Args:
+      estimate: (..., K, d) with any leading run axes.
+      truth: the same shape, already aligned with the estimate (pass ``truth[..., 1:, :]`` for a
+        ``simulate()`` trajectory, which includes x_0).
     """
     estimate, truth = jnp.asarray(estimate), jnp.asarray(truth)
     if estimate.shape != truth.shape:

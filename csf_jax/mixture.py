@@ -21,10 +21,22 @@ component's posterior; the ensemble component's members are drawn by the reverse
 wide Gaussians are not left to the sampler: under a weakly informative likelihood (stochastic
 volatility's) its early, far-flung Tweedie estimates overflow the likelihood.
 
+A step without an observed entry (an outage, or the first step with
+``SamplerConfig.assimilate_first`` False) brings no evidence, and its posterior is its prior: the
+particle and ensemble components at their prior odds, and no shock components. A jump can be told
+from the ensemble only by an observation; drawn without one, a shock member is a point up to
+``sqrt(max(shock_scales))`` (64) ensemble spreads off, which the dynamics carry wherever they go
+(Lorenz-96's RK4: to overflow), and
+which widens the next step's covariance and with it the next step's shock scales, a runaway over
+consecutive blind steps. The shock components of the next observed step, scaled to the ensemble
+there, cover a jump at any step in between.
+
 The particle and ensemble readings compete through their prior odds, updated by their evidence
 over the recent steps (log Bayes factor with forgetting ``memory``): on a model where the Gaussian
 predicts the observations better (high dimension, few particles for the observation) the ensemble
 component takes over; where it does not, the particle components keep the prior odds' preference.
+The forgetting counts steps with evidence: a step without any leaves the accumulated Bayes factor
+as it was (``next_odds``).
 """
 
 from __future__ import annotations
@@ -39,29 +51,38 @@ from jax.scipy.special import logsumexp
 
 from csf_jax import _checks, _linalg
 from csf_jax.guidance import importance_weights, kalman_tweedie
-from csf_jax.ssm import StateSpaceModel, curvature, log_likelihood, process_cov, tail_df
+from csf_jax.ssm import (
+    StateSpaceModel,
+    curvature,
+    log_likelihood,
+    observed,
+    process_cov,
+    tail_df,
+)
 
 
 @dataclasses.dataclass(frozen=True)
 class MixtureConfig:
-    """The mixture prior's settings (``CSFConfig.mixture``); defaults chosen on models outside the
+    """The mixture prior's settings (``CSFConfig.prior.mixture``); defaults chosen on models outside the
     tables (docs/zoo.md).
 
-    particles: include the particle components ``N(f(x_i), Q)`` (they need the process noise's
-      covariance Q: i.i.d. noise, or ``ProcessNoise.covariance``).
-    particle_logodds: prior log-odds of the particle reading against the ensemble one, before the
-      evidence of the recent steps.
-    memory: forgetting factor of the accumulated log Bayes factor (0: this step's prior odds only;
-      0.9: about the last ten steps).
-    shock_hazard: the prior probability that the step holds an unmodelled jump (the shock
-      components' total weight); 0 switches them off.
-    shock_scales: the shock components' inflations ``tau^2``, as multiples of the ensemble's mean
-      variance: a geometric grid from twice to 64 times its spread, so that one component is
-      within a factor 2 of any jump in that range (the evidence then pays at most ``2^d`` for the
-      grid's coarseness, against the ``exp(-jump^2 / spread^2)`` the ensemble pays).
-    iterations, proposals: Gauss-Newton steps and importance draws per particle component.
-    ensemble_iterations, ensemble_proposals: the same for the ensemble and shock components (one
-      each, so they can afford more: their evidence decides between readings).
+    Attributes:
+      particles: include the particle components ``N(f(x_i), Q)`` (they need the process noise's
+        covariance Q: i.i.d. noise, or ``ProcessNoise.covariance``; a ``ProcessNoise`` without one
+        is refused, not run without them).
+      particle_logodds: prior log-odds of the particle reading against the ensemble one, before the
+        evidence of the recent steps.
+      memory: forgetting factor of the accumulated log Bayes factor (0: this step's prior odds only;
+        0.9: about the last ten steps).
+      shock_hazard: the prior probability that the step holds an unmodelled jump (the shock
+        components' total weight); 0 switches them off.
+      shock_scales: the shock components' inflations ``tau^2``, as multiples of the ensemble's mean
+        variance: a geometric grid from twice to 64 times its spread, so that one component is
+        within a factor 2 of any jump in that range (the evidence then pays at most ``2^d`` for the
+        grid's coarseness, against the ``exp(-jump^2 / spread^2)`` the ensemble pays).
+      iterations, proposals: Gauss-Newton steps and importance draws per particle component.
+      ensemble_iterations, ensemble_proposals: the same for the ensemble and shock components (one
+        each, so they can afford more: their evidence decides between readings).
     """
 
     particles: bool = True
@@ -107,6 +128,8 @@ class Selection(NamedTuple):
     inflation: (1 + G,) ``tau^2`` of kinds 1.. (the ensemble's base inflation, then the shocks').
     log_bf: this step's log Bayes factor of the particle reading against the ensemble one.
     particle_weight, shock_weight: the posterior weights of the particle and shock components.
+    informed: whether the step assimilates an observed entry (``informative``); without one the
+      shock components are off, ``log_bf`` is 0 and the memory is carried unchanged.
     """
 
     kind: jax.Array
@@ -115,12 +138,21 @@ class Selection(NamedTuple):
     log_bf: jax.Array
     particle_weight: jax.Array
     shock_weight: jax.Array
+    informed: jax.Array
 
 
 def uses_particles(config: MixtureConfig, model: StateSpaceModel) -> bool:
-    """Whether the particle components are on: asked for, and Q is known."""
-    noise = model.process_noise
-    return config.particles and (noise is None or noise.covariance is not None)
+    """Whether the particle components are on: asked for. They need Q: ``process_cov`` raises
+    for a ``ProcessNoise`` without a covariance, and ``csf_jax.filter`` refuses that combination
+    at its boundary rather than dropping the components."""
+    del model
+    return config.particles
+
+
+def informative(y, guide):
+    """Whether a step brings evidence: ``y (m,)`` has an observed entry and is assimilated
+    (``guide > 0``); a scalar bool."""
+    return (guide > 0) & jnp.any(observed(y))
 
 
 def _component_evidence(model, y, key, means, precision, iterations: int, proposals: int, guide):
@@ -141,6 +173,7 @@ def _component_evidence(model, y, key, means, precision, iterations: int, propos
     return logsumexp(log_w, 0) - jnp.log(proposals), draws, u, chol
 
 
+@_linalg.precise
 def precision(cov):
     """``cov^{-1}`` of a symmetric positive-definite ``(..., d, d)``, symmetrised."""
     eye = jnp.broadcast_to(jnp.eye(cov.shape[-1], dtype=cov.dtype), cov.shape)
@@ -148,6 +181,7 @@ def precision(cov):
     return 0.5 * (p + jnp.swapaxes(p, -1, -2))
 
 
+@_linalg.precise
 def select(model: StateSpaceModel, config: MixtureConfig, key, y, centers, prior_ens, cov,
            base_inflation, odds, guide) -> Selection:
     """The evidence stage of one filter step (module docstring).
@@ -163,6 +197,7 @@ def select(model: StateSpaceModel, config: MixtureConfig, key, y, centers, prior
     mean = prior_ens.mean(0)
     scales = jnp.asarray(config.shock_scales, dtype)
     shocks = config.shock_hazard > 0
+    informed = informative(y, guide)
     shock_tau2 = jnp.trace(cov) / d * scales
     inflation = jnp.concatenate([jnp.reshape(jnp.asarray(base_inflation, dtype), (1,)),
                                  shock_tau2 if shocks else jnp.zeros((0,), dtype)])
@@ -172,8 +207,11 @@ def select(model: StateSpaceModel, config: MixtureConfig, key, y, centers, prior
         model, y, k, mean[None], p, config.ensemble_iterations, config.ensemble_proposals,
         guide))(precisions, ens_keys)                                         # (1 + G, 1, ...)
     log_z_ens = log_z_ens[:, 0]
-    log_hazard = jnp.log(jnp.asarray(config.shock_hazard if shocks else 0.0, dtype))
-    log_calm = jnp.log1p(-jnp.asarray(config.shock_hazard if shocks else 0.0, dtype))
+    # a jump is a hypothesis about the observation: a step without one has no shock components
+    # (module docstring), so its posterior is the prior and its Bayes factor 1
+    hazard = jnp.asarray(config.shock_hazard if shocks else 0.0, dtype)
+    log_hazard = jnp.where(informed, jnp.log(hazard), -jnp.inf)
+    log_calm = jnp.where(informed, jnp.log1p(-hazard), 0.0)
     if uses_particles(config, model):
         q_prec = precision(process_cov(model, dtype) + 1e-12 * eye)
         log_z_part, draws, _, _ = _component_evidence(
@@ -210,8 +248,8 @@ def select(model: StateSpaceModel, config: MixtureConfig, key, y, centers, prior
         pick = jax.random.categorical(jax.random.fold_in(k_shock, 1), log_wc, axis=0)
         shock_draws = jnp.take_along_axis(cand, pick[None, :, None], axis=0)[0]
         draws = jnp.where((kind > 1)[:, None], shock_draws, draws)
-    return Selection(kind, draws, inflation, jnp.where(jnp.isfinite(log_bf), log_bf, 0.0),
-                     particle_weight, shock_weight)
+    log_bf = jnp.where(informed & jnp.isfinite(log_bf), log_bf, 0.0)
+    return Selection(kind, draws, inflation, log_bf, particle_weight, shock_weight, informed)
 
 
 def _systematic(key, log_weights, n: int):
@@ -223,8 +261,14 @@ def _systematic(key, log_weights, n: int):
     return jnp.clip(jnp.searchsorted(cdf, u, side="left"), 0, log_weights.shape[0] - 1)
 
 
-def next_odds(config: MixtureConfig, memory, log_bf):
+def next_odds(config: MixtureConfig, memory, log_bf, informed=True):
     """The accumulated log Bayes factor after this step, and the next step's prior log-odds of
-    the particle reading: ``S <- memory S + log_bf``, odds = ``particle_logodds + S``."""
-    acc = config.memory * memory + log_bf
+    the particle reading: ``S <- memory S + log_bf``, odds = ``particle_logodds + S``.
+
+    informed: whether the step brought evidence (``Selection.informed``). A step without any
+    leaves ``S`` as it was: the forgetting counts assimilated observations, so an outage neither
+    adds evidence nor wears away the evidence gathered before it (with ``S`` forgotten per time
+    step, ten blind steps would take ``memory^10`` = 35% of it, and a long outage would reset the
+    odds to the prior's with nothing observed to justify it)."""
+    acc = jnp.where(informed, config.memory * memory + log_bf, memory)
     return acc, config.particle_logodds + acc

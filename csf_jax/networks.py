@@ -329,7 +329,7 @@ def mismatched_field(shapes, config: NetworkConfig, dim: int):
     Tries the sizes of the first mismatching leaf for each size field and the state dimension, and
     1..8 for the fields that change the structure (``blocks``, ``score_layers``); returns
     ``(field, value)`` for the first change that makes every shape fit, or None. Only for error
-    paths: each try costs one ``jax.eval_shape`` (about 0.1 s).
+    paths: each try costs one ``jax.eval_shape`` (a trace of both networks).
     """
     got = {jax.tree_util.keystr(p): tuple(x.shape)
            for p, x in jax.tree_util.tree_flatten_with_path(shapes)[0]}

@@ -3,9 +3,11 @@
 Each model lives in ``csf_jax/pretrained_models/<name>/`` as an orbax checkpoint of the parameters
 plus ``meta.json`` (problem, dimension, network and training configs, dataset id, seed, validation
 history, training seconds). ``triple_well`` uses the double-well model (the paper's transfer
-experiment). They are made by ``python -m experiments.make_pretrained`` (see the README).
+experiment). They are made by ``python -m experiments.train --export`` (docs/guide.md). They
+load on any platform and device count: the ``cpu:0`` shardings their orbax metadata records are
+ignored and the parameters restored onto the default device (``csf_jax.trained.load_dir``).
 
-A loaded model is a ``csf_jax.trained.Pretrained``; pass it whole to ``csf_jax.filter`` (the
+A loaded model is a ``csf_jax.TrainedPrior``; pass it whole to ``csf_jax.filter`` (the
 checked route). A damaged or inconsistent model folder fails with one line naming the folder and
 the mismatching field.
 """
@@ -15,7 +17,8 @@ from __future__ import annotations
 import os
 
 from csf_jax import networks
-from csf_jax.trained import Pretrained, TrainedPrior, export, load_dir  # noqa: F401  (re-exported)
+from csf_jax.trained import TrainedPrior, export, load_dir  # noqa: F401  (re-exported)
+from csf_jax.trained import deprecated_alias as _deprecated_alias
 from csf_jax.training.data import DatasetConfig
 from csf_jax.training.train import TrainConfig
 
@@ -38,9 +41,10 @@ DATASETS = {
 
 # Network of each shipped model: the ensemble's Gaussian score plus a learned correction on
 # standardised coordinates (NetworkConfig.base), so an untrained or useless correction
-# leaves the ensemble's own Gaussian. Whole-score models (no Gaussian base) needed 12000 steps
-# on the cubic problems; the Gaussian-base ones start at the Gaussian's loss, and 4000 steps are
-# the recipe for every problem (docs/results.md).
+# leaves the ensemble's own Gaussian. Whole-score models (no Gaussian base) needed a much longer
+# run on the cubic problems; the Gaussian-base ones start at the Gaussian's loss, and
+# TrainConfig's default steps are the recipe for every problem (measured on docs/guide.md,
+# "Training a prior offline", and docs/design.md).
 NETWORK = {name: networks.NetworkConfig(base="gaussian") for name in DATASETS}
 
 # Training of each shipped model; the wells' model learns both wells by mirroring (see TrainConfig).
@@ -53,14 +57,19 @@ def available() -> tuple[str, ...]:
                  if os.path.exists(os.path.join(MODEL_DIR, m, "meta.json")))
 
 
-def load_pretrained(problem: str) -> Pretrained:
+def load_pretrained(problem: str) -> TrainedPrior:
     """The shipped model for ``problem`` (triple_well gets the double-well model)."""
     if problem not in MODEL_FOR:
         raise KeyError(f"no pretrained model for {problem!r}; known: {', '.join(MODEL_FOR)}")
     path = os.path.join(MODEL_DIR, MODEL_FOR[problem])
     if not os.path.exists(os.path.join(path, "meta.json")):
         raise FileNotFoundError(f"the pretrained model for {problem!r} is missing from {path}; "
-                                f"make it with: python -m experiments.make_pretrained "
-                                f"{MODEL_FOR[problem]}")
+                                f"make it with: python -m experiments.train "
+                                f"{MODEL_FOR[problem]} --export")
     model = MODEL_FOR[problem]
     return load_dir(path, serves=() if model == problem else (problem,))
+
+
+def __getattr__(name: str):
+    """``Pretrained``: the deprecated name of ``TrainedPrior`` (a ``DeprecationWarning``)."""
+    return _deprecated_alias(__name__, name)

@@ -45,28 +45,29 @@ def _masked_cov(cov: Array, mask: Array) -> Array:
 class ObservationNoise(NamedTuple):
     """An additive observation noise ``w``: i.i.d. per coordinate, or any user density.
 
-    log_prob: residual ``(m,)`` -> scalar log-density (up to a constant).
-    sample: ``(key, shape)`` -> a draw of that shape (``shape[-1] = m``).
-    gaussian_std: std of the Gaussian that the EnKF uses in its place (the noise's own std if
-      Gaussian; for Cauchy the Gaussian with the same central 68% interval). Ignored where
-      ``covariance`` is given.
-    fisher: the Fisher information of one coordinate's noise, ``E[(d log p(w) / dw)^2]``.
-      None: ``1 / gaussian_std^2``. The curvature of CSF's Kalman guidance when ``weight`` is None.
-    weight: optional ``residual (m,) -> (m,)``, the iteratively reweighted least-squares weights
-      ``-(d log p / dw) / w`` of a symmetric noise whose log-density decreases in ``|w|``: the
-      curvature of the Gaussian that touches ``log p`` from below at the residual. For Cauchy
-      ``2 / (scale^2 + w^2)``: an outlier gets a small weight, so the guidance does not chase it
-      (with the Fisher information it would). None: the constant ``fisher_information``.
-    covariance: optional ``(m, m)`` covariance as a nested tuple (hashable): correlated noise. The
-      EnKF, the Kalman filter and CSF's Kalman guidance use it (its inverse is the guidance's
-      curvature); None: ``gaussian_std^2 I``.
-    marginal: optional ``(residual (m,), observed (m,) bool) -> scalar``, the log-density of the
-      observed entries alone (the others are marginalised out; their residuals are 0). Needed for
-      missing observations (NaN in ``obs``). The constructors here give it; a user noise without it
-      filters complete observations only.
-    tail_df: optional degrees of freedom of the noise's tails (Cauchy: 1): CSF's importance
-      proposals are then Student-t with these degrees of freedom (``GuidanceConfig.proposal_df``
-      left at None), so that they reach the heavy-tailed posterior's tails.
+    Attributes:
+      log_prob: residual ``(m,)`` -> scalar log-density (up to a constant).
+      sample: ``(key, shape)`` -> a draw of that shape (``shape[-1] = m``).
+      gaussian_std: std of the Gaussian that the EnKF uses in its place (the noise's own std if
+        Gaussian; for Cauchy the Gaussian with the same central 68% interval). Ignored where
+        ``covariance`` is given.
+      fisher: the Fisher information of one coordinate's noise, ``E[(d log p(w) / dw)^2]``.
+        None: ``1 / gaussian_std^2``. The curvature of CSF's Kalman guidance when ``weight`` is None.
+      weight: optional ``residual (m,) -> (m,)``, the iteratively reweighted least-squares weights
+        ``-(d log p / dw) / w`` of a symmetric noise whose log-density decreases in ``|w|``: the
+        curvature of the Gaussian that touches ``log p`` from below at the residual. For Cauchy
+        ``2 / (scale^2 + w^2)``: an outlier gets a small weight, so the guidance does not chase it
+        (with the Fisher information it would). None: the constant ``fisher_information``.
+      covariance: optional ``(m, m)`` covariance as a nested tuple (hashable): correlated noise. The
+        EnKF, the Kalman filter and CSF's Kalman guidance use it (its inverse is the guidance's
+        curvature); None: ``gaussian_std^2 I``.
+      marginal: optional ``(residual (m,), observed (m,) bool) -> scalar``, the log-density of the
+        observed entries alone (the others are marginalised out; their residuals are 0). Needed for
+        missing observations (NaN in ``obs``). The constructors here give it; a user noise without it
+        filters complete observations only.
+      tail_df: optional degrees of freedom of the noise's tails (Cauchy: 1): CSF's importance
+        proposals are then Student-t with these degrees of freedom (``GuidanceConfig.proposal_df``
+        left at None), so that they reach the heavy-tailed posterior's tails.
     """
 
     name: str
@@ -213,13 +214,14 @@ class Likelihood(NamedTuple):
     """A non-additive observation density ``p(y | eta)``, ``eta = h(x) (m,)``, entries of y
     conditionally independent given eta (Poisson counts, stochastic volatility, binary data).
 
-    log_prob: ``(y (m,), eta (m,)) -> (m,)``, the log-density of each entry (up to constants in y).
-    sample: ``(key, eta (m,)) -> y (m,)``, one draw (for ``simulate``).
-    fisher: optional ``eta (m,) -> (m,)``, the Fisher information of each ``eta_j``: the curvature
-      of CSF's Gauss-Newton guidance (``J^T diag(fisher) J``, ``J = dh/dx``). None: the observed
-      information ``-d^2 log_prob / d eta^2``, clipped at 0.
-    mean, variance: optional ``eta (m,) -> (m,)``, ``E[y | eta]`` and ``Var[y | eta]``: the Gaussian
-      stand-in of the Kalman-type filters (EnKF, LETKF). Without them those filters refuse the model.
+    Attributes:
+      log_prob: ``(y (m,), eta (m,)) -> (m,)``, the log-density of each entry (up to constants in y).
+      sample: ``(key, eta (m,)) -> y (m,)``, one draw (for ``simulate``).
+      fisher: optional ``eta (m,) -> (m,)``, the Fisher information of each ``eta_j``: the curvature
+        of CSF's Gauss-Newton guidance (``J^T diag(fisher) J``, ``J = dh/dx``). None: the observed
+        information ``-d^2 log_prob / d eta^2``, clipped at 0.
+      mean, variance: optional ``eta (m,) -> (m,)``, ``E[y | eta]`` and ``Var[y | eta]``: the Gaussian
+        stand-in of the Kalman-type filters (EnKF, LETKF). Without them those filters refuse the model.
     """
 
     name: str
@@ -261,10 +263,11 @@ def volatility_likelihood() -> Likelihood:
 class ProcessNoise(NamedTuple):
     """An additive process noise ``v`` other than the default i.i.d. ``N(0, process_std^2)``.
 
-    sample: ``(key, shape (..., d)) -> draws of that shape``.
-    covariance: ``(d, d)`` as a nested tuple (hashable), or None if unknown: the Kalman filter needs
-      it; the ensemble filters only sample.
-    log_prob: optional ``v (d,) -> scalar`` log-density (up to a constant), for users' own methods.
+    Attributes:
+      sample: ``(key, shape (..., d)) -> draws of that shape``.
+      covariance: ``(d, d)`` as a nested tuple (hashable), or None if unknown: the Kalman filter needs
+        it; the ensemble filters only sample.
+      log_prob: optional ``v (d,) -> scalar`` log-density (up to a constant), for users' own methods.
     """
 
     name: str
@@ -331,9 +334,10 @@ def reflect_shock(key: Array, x: Array) -> Array:
 class Step(NamedTuple):
     """What a time-varying model's ``drift`` and ``observe`` are told at step k.
 
-    k: int32 scalar, the index of the state being made and observed: ``x_k = f(x_{k-1}, step)``,
-      ``y_k`` from ``h(x_k, step)``; k = 1 .. K (``obs[k - 1]``).
-    u: the user's input for step k (``inputs`` sliced at ``k - 1``, any pytree), or None.
+    Attributes:
+      k: int32 scalar, the index of the state being made and observed: ``x_k = f(x_{k-1}, step)``,
+        ``y_k`` from ``h(x_k, step)``; k = 1 .. K (``obs[k - 1]``).
+      u: the user's input for step k (``inputs`` sliced at ``k - 1``, any pytree), or None.
     """
 
     k: Array
@@ -550,7 +554,9 @@ def check_dynamics(model: StateSpaceModel, dtype, inputs=None, name: str = "filt
     """Trace ``drift`` and ``observe`` once (``jax.eval_shape``: nothing is computed) on a state
     ``(d,)`` of ``dtype`` and, for a time-varying model, the step with one slice of ``inputs``;
     refuse outputs of the wrong shape, and turn a failure (a time-varying model's drift that needs
-    the inputs it was not given, say) into one line naming the model and the map."""
+    the inputs it was not given, say) into one line naming the model and the map. The observation
+    law's ``log_prob`` and ``sample`` are traced the same way (``_check_noise``)."""
+    _checked_noise(model, np.dtype(dtype).name, name)
     if inputs is None:
         _checked_dynamics(model, np.dtype(dtype).name, name)
         return
@@ -562,7 +568,8 @@ def check_dynamics(model: StateSpaceModel, dtype, inputs=None, name: str = "filt
 @functools.lru_cache(maxsize=256)
 def _checked_dynamics(model: StateSpaceModel, dtype: str, name: str) -> None:
     """``_check_dynamics`` without inputs, once per model and dtype (a failure is not cached):
-    the trace costs milliseconds, as much as a whole filter step of a small model."""
+    the trace is host work that, repeated on every call, would cost about as much as a whole
+    filter step of a small model."""
     _check_dynamics(model, dtype, None, name)
 
 
@@ -584,6 +591,48 @@ def _check_dynamics(model: StateSpaceModel, dtype: str, u, name: str) -> None:
             raise ValueError(f"{label}: its {field} returns shape {shape} for a state of shape "
                              f"({model.dim},); expected ({size},) "
                              f"({'dim' if field == 'drift' else 'obs_dim'}={size})")
+
+
+@functools.lru_cache(maxsize=256)
+def _checked_noise(model: StateSpaceModel, dtype: str, name: str) -> None:
+    """``_check_noise`` once per model and dtype (a failure is not cached)."""
+    _check_noise(model, dtype, name)
+
+
+def _check_noise(model: StateSpaceModel, dtype: str, name: str) -> None:
+    """Trace the observation law's ``log_prob`` and ``sample`` once (``jax.eval_shape``) on
+    arrays of the model's sizes and refuse outputs of the wrong shape, each in one line naming the
+    field. A ``Likelihood``: ``log_prob(y (m,), eta (m,)) -> (m,)`` (a scalar would be broadcast
+    over the m entries and counted m times) and ``sample(key, eta (m,)) -> (m,)``. An
+    ``ObservationNoise``: ``log_prob(residual (m,)) -> ()`` and ``sample(key, (2, m)) -> (2, m)``."""
+    m = model.obs_dim
+    vec = jax.ShapeDtypeStruct((m,), dtype)
+    key = jax.random.key(0)
+    label = f"{name}: model {model.name!r}"
+    noise = model.obs_noise
+    if is_additive(model):
+        kind = "ObservationNoise"
+        probes = (("log_prob", noise.log_prob, (vec,), (), f"a residual of shape ({m},)",
+                   "a scalar"),
+                  ("sample", lambda k: noise.sample(k, (2, m)), (key,), (2, m),
+                   f"shape (2, {m})", f"(2, {m})"))
+    else:
+        kind = "Likelihood"
+        probes = (("log_prob", noise.log_prob, (vec, vec), (m,), f"y and eta of shape ({m},)",
+                   f"({m},), one log-density per entry (a scalar would be counted {m} times)"),
+                  ("sample", noise.sample, (key, vec), (m,), f"eta of shape ({m},)",
+                   f"({m},), one draw of y (obs_dim={m})"))
+    for field, fn, args, want, given, expected in probes:
+        try:
+            out = jax.eval_shape(fn, *args)
+        except Exception as e:  # noqa: BLE001  (whatever the user's function raises)
+            first = (str(e).strip().splitlines() or [""])[0][:160]
+            raise ValueError(f"{label}: its {kind}.{field} fails on {given}: "
+                             f"{type(e).__name__}: {first}") from None
+        shape = getattr(out, "shape", None)
+        if shape != want:
+            raise ValueError(f"{label}: its {kind}.{field} returns shape {shape} for {given}; "
+                             f"expected {expected}")
 
 
 def log_likelihood(model: StateSpaceModel, y: Array, x: Array) -> Array:
@@ -671,12 +720,14 @@ def simulate(model: StateSpaceModel, key: Array, num_steps: int | None = None, i
 
     Returns ``truth (K+1, d)`` (``x_0 .. x_K``) and ``obs (K, m)`` (``y_1 .. y_K``), with the model's
     shocks applied to the truth. ``inputs``: a time-varying model's per-step inputs, a pytree whose
-    leaves have leading axis K (K defaults to theirs). Same key, same trajectory. Jit- and
-    vmap-friendly.
+    leaves have leading axis K (K defaults to theirs); a NaN or inf input is refused, as the
+    filters refuse it (a concrete call: under jit or vmap the caller owns the values). Same key,
+    same trajectory. Jit- and vmap-friendly.
     """
     check_model(model, "simulate")
     _checks.check_key(key, "simulate")
     K = _num_steps(model, num_steps, inputs, "simulate")
+    _checks.check_inputs(inputs, K, model, name="simulate")
     check_dynamics(model, jnp.float32, inputs, "simulate")
     k0, _, k_shock, k_proc, k_obs = jax.random.split(key, 5)
     x0 = model.initial_truth(k0)

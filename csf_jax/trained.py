@@ -9,6 +9,8 @@ be checked beyond their shapes.
 On disk a trained prior is a folder: an orbax checkpoint of the parameters (``params/``) and
 ``meta.json`` (model fingerprint, network and training configs, dataset id, validation history).
 ``save`` writes one, ``load_prior`` reads one and checks it against the model it is meant for.
+The parameters are written as host arrays and restored onto this process's default device, so a
+folder loads on any platform and device count, whatever devices its orbax metadata records.
 
 A model is identified by its ``model_fingerprint``: name, dimensions, noise settings, and the values
 of its drift and observation map at four points of its own initial ensemble. A model with the same
@@ -36,13 +38,19 @@ from csf_jax.ssm import StateSpaceModel, Step, at_step, is_additive
 
 class TrainedPrior(NamedTuple):
     """A trained prior: ``params`` for ``csf_jax.filter``, the ``network`` config they were made
-    with, and their ``meta`` record (``meta["problem"]`` and ``meta["dim"]``: the model it was
-    trained for; ``meta["model"]``, where present, its ``model_fingerprint``; also training configs,
-    dataset id, validation history).
+    with, and their ``meta`` record.
 
-    serves: names of further problems it may filter besides ``meta["problem"]`` (a transfer, such
-    as the double-well model on ``triple_well``). A pytree whose only leaves are ``params``, so it
-    passes through ``jax.jit`` and ``jax.vmap`` as raw params do.
+    A pytree whose only leaves are ``params``, so it passes through ``jax.jit`` and ``jax.vmap`` as
+    raw params do.
+
+    Attributes:
+      params: the network parameters.
+      network: the ``NetworkConfig`` they were made with.
+      meta: the record: ``meta["problem"]`` and ``meta["dim"]``, the model it was trained for;
+        ``meta["model"]``, where present, its ``model_fingerprint``; also training configs, dataset
+        id, validation history.
+      serves: names of further problems it may filter besides ``meta["problem"]`` (a transfer,
+        such as the double-well model on ``triple_well``).
     """
 
     params: dict
@@ -103,8 +111,22 @@ jax.tree_util.register_pytree_with_keys(
                (p.network, _Static(p.meta), tuple(p.serves))),
     lambda aux, children: TrainedPrior(children[0], aux[0], aux[1].value, aux[2]))
 
-# An alias kept for code that names the shipped models' type; the same class.
-Pretrained = TrainedPrior
+
+def deprecated_alias(module: str, name: str):
+    """The value of the deprecated name ``module.name``, with a ``DeprecationWarning`` naming its
+    new name; AttributeError for any other name (the body of a module ``__getattr__``).
+    ``Pretrained``: the former name of ``TrainedPrior``, the same class."""
+    if name == "Pretrained":
+        import warnings
+        warnings.warn(f"{module}.Pretrained is deprecated: it is csf_jax.TrainedPrior, the same "
+                      f"class; the old name goes in the next version", DeprecationWarning,
+                      stacklevel=3)
+        return TrainedPrior
+    raise AttributeError(f"module {module!r} has no attribute {name!r}")
+
+
+def __getattr__(name: str):
+    return deprecated_alias(__name__, name)
 
 
 PROBE_POINTS = 4
@@ -185,7 +207,7 @@ def unpack(trained, problem, network: networks.NetworkConfig | None,
     allowed = (made_for,) + tuple(trained.serves)
     if made_for is not None and problem.name not in allowed:
         raise ValueError(f"{name}: the trained prior was made for problem {made_for!r} (d="
-                         f"{trained.dim}), but problem={problem.name!r} (d={problem.dim}); load the "
+                         f"{trained.dim}), but model={problem.name!r} (d={problem.dim}); load the "
                          f"model of {problem.name!r}")
     if trained.dim is not None and trained.dim != problem.dim:
         raise ValueError(f"{name}: the trained prior was made for d={trained.dim}, but problem "
@@ -207,7 +229,8 @@ def export(directory: str, params, network: networks.NetworkConfig, meta: dict) 
     """Write ``params`` (orbax) and ``meta.json`` to ``directory`` (replacing what is there).
 
     ``meta`` must name the ``problem`` and its ``dim``; ``params`` are checked against
-    ``network`` and ``dim`` first, so an exported model always loads.
+    ``network`` and ``dim`` first, so an exported model always loads. The arrays are saved as
+    numpy arrays, so the folder records no device (``_store.host_arrays``).
     """
     directory = _checks.check_path(directory, "export")
     missing = [k for k in ("problem", "dim") if k not in meta]
@@ -221,7 +244,7 @@ def export(directory: str, params, network: networks.NetworkConfig, meta: dict) 
     try:
         os.makedirs(directory, exist_ok=True)
         with ocp.StandardCheckpointer() as ckpt:
-            ckpt.save(os.path.join(directory, "params"), params, force=True)
+            ckpt.save(os.path.join(directory, "params"), _store.host_arrays(params), force=True)
         with open(os.path.join(directory, "meta.json"), "w") as f:
             json.dump({**meta, "network": dataclasses.asdict(network)}, f, indent=1)
     except OSError as e:
@@ -246,9 +269,19 @@ def _read_meta(directory: str) -> tuple[dict, networks.NetworkConfig, int]:
 
 
 def _stored_shapes(params_dir: str, directory: str):
-    """The parameter tree of shapes ``(ShapeDtypeStruct)`` saved in ``params_dir``."""
+    """The parameter tree of shapes ``(ShapeDtypeStruct)`` saved in ``params_dir``.
+
+    Every array is read back with TensorStore first (``_store.damaged_array``): orbax's metadata
+    read opens all arrays concurrently, and on a damaged folder the reads it abandons print
+    asyncio tracebacks after the error, so a damaged folder is refused here in one line before
+    orbax opens it. The shapes come from the metadata alone; the shardings it records are ignored.
+    """
     if not os.path.isdir(params_dir):
         raise FileNotFoundError(f"model {directory}: its parameter folder {params_dir} is missing")
+    damage = _store.damaged_array(params_dir)
+    if damage is not None:
+        raise ValueError(f"model {directory}: the parameters in {params_dir} cannot be restored "
+                         f"({damage})")
     try:
         with ocp.StandardCheckpointer() as ckpt:
             item = ckpt.metadata(params_dir).item_metadata
@@ -294,19 +327,17 @@ def load_dir(directory: str, serves: tuple = ()) -> TrainedPrior:
     """Load a model written by ``export``.
 
     Checks ``meta.json`` against the stored array shapes before restoring anything: a damaged or
-    inconsistent folder fails with one line naming it and the mismatching field.
-    serves: further problem names the model may filter (see ``Pretrained``).
+    inconsistent folder fails with one line naming it and the mismatching field. The parameters
+    are restored onto this process's default device whatever devices the folder records
+    (``_store.restore_target``), so a model saved on one platform loads on any other.
+    serves: further problem names the model may filter (see ``TrainedPrior``).
     """
     directory = os.path.abspath(_checks.check_path(directory, "load_prior"))
     _checks.check_folder(directory, f"model {directory}")
     meta, network, dim = _read_meta(directory)
     params_dir = os.path.join(directory, "params")
     _check_stored(_stored_shapes(params_dir, directory), network, dim, directory)
-    target = networks._expected_params(network, dim)
-    damage = _store.damaged_array(params_dir)
-    if damage is not None:
-        raise ValueError(f"model {directory}: the parameters in {params_dir} cannot be restored "
-                         f"({damage})")
+    target = _store.restore_target(networks._expected_params(network, dim))
     try:
         with ocp.StandardCheckpointer() as ckpt:
             params = ckpt.restore(params_dir, target)
@@ -321,11 +352,14 @@ def load_prior(directory: str, model: StateSpaceModel | None = None,
                network: networks.NetworkConfig | None = None) -> TrainedPrior:
     """Load a trained prior written by ``TrainedPrior.save`` (or ``csf_jax.train_prior``).
 
-    model: the model it is meant to filter: refused (one-line ValueError) if the prior was made
-      for another name or dimension, or, where the folder records a fingerprint, for a model whose
-      drift, sensor or noise differ (``model_fingerprint``).
-    network: the network config expected; refused if the folder's differs.
     A damaged or inconsistent folder fails with one line naming it and the field at fault.
+
+    Args:
+      directory: the folder ``TrainedPrior.save`` wrote.
+      model: the model it is meant to filter: refused (one-line ValueError) if the prior was made
+        for another name or dimension, or, where the folder records a fingerprint, for a model whose
+        drift, sensor or noise differ (``model_fingerprint``).
+      network: the network config expected; refused if the folder's differs.
     """
     prior = load_dir(directory)
     where = f"load_prior({os.path.abspath(directory)})"

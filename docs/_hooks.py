@@ -1,24 +1,31 @@
 """mkdocs hooks: serve the figures under ``results/`` that the pages show.
 
-The pages link them as ``../results/<problem>/<figure>.png`` (the path that also works on a code
-host); the site holds them at ``results/<problem>/<figure>.png``.
+The pages link them as ``../results/<path>.png`` (the path that also works on a code host); the
+site holds them at ``results/<path>.png``, for every ``.png`` under ``results/`` at any depth
+(``results/table/<problem>/estimates.png``, say), the run cache apart.
+
+mkdocs imports this file from ``docs/``, so Python may leave ``docs/__pycache__/`` behind;
+``exclude_docs`` in mkdocs.yml keeps it (and this file) out of the site.
 """
 
 import os
 
 from mkdocs.structure.files import File
 
+SKIP = {"cache"}
+
 
 def on_files(files, config):
     root = os.path.dirname(config["config_file_path"])
-    for problem in sorted(os.listdir(os.path.join(root, "results"))):
-        folder = os.path.join(root, "results", problem)
-        if not os.path.isdir(folder):
-            continue
-        for name in sorted(os.listdir(folder)):
+    results = os.path.join(root, "results")
+    if not os.path.isdir(results):
+        return files
+    for folder, dirs, names in os.walk(results):
+        dirs[:] = sorted(d for d in dirs if d not in SKIP)
+        for name in sorted(names):
             if name.endswith(".png"):
-                files.append(File(f"results/{problem}/{name}", root, config["site_dir"],
-                                  config["use_directory_urls"]))
+                path = os.path.relpath(os.path.join(folder, name), root).replace(os.sep, "/")
+                files.append(File(path, root, config["site_dir"], config["use_directory_urls"]))
     return files
 
 

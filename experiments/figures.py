@@ -30,18 +30,19 @@ from csf_jax.filters.csf import (  # noqa: E402
     sampler_start,
     uses_kalman,
 )
+from csf_jax.inflation import InflationConfig  # noqa: E402
 from csf_jax.ssm import propagate  # noqa: E402
 
-STYLES = {"csf": dict(color="tab:red", ls="-", marker="o"),
-          "csf_gaussian": dict(color="tab:orange", ls="--", marker="s"),
-          "sf": dict(color="tab:blue", ls="-.", marker="^"),
-          "enkf": dict(color="tab:green", ls=(0, (5, 1.5)), marker="v"),
-          "pf": dict(color="tab:purple", ls=":", marker="D"),
-          "reference": dict(color="tab:cyan", ls="-", marker="x")}
+STYLES = {"CSF": dict(color="tab:red", ls="-", marker="o"),
+          "CSF-G": dict(color="tab:orange", ls="--", marker="s"),
+          "SF": dict(color="tab:blue", ls="-.", marker="^"),
+          "EnKF": dict(color="tab:green", ls=(0, (5, 1.5)), marker="v"),
+          "PF": dict(color="tab:purple", ls=":", marker="D"),
+          "Ref.": dict(color="tab:cyan", ls="-", marker="x")}
 TRUTH = dict(color="black", ls="--", lw=0.9, zorder=1)
 COLORS = {m: s["color"] for m, s in STYLES.items()}
-LABELS = {"csf": "CSF", "csf_gaussian": "CSF, Gaussian prior", "sf": "SF", "enkf": "EnKF",
-          "pf": "PF", "reference": "reference"}
+LABELS = {"CSF": "CSF", "CSF-G": "CSF, Gaussian prior", "SF": "SF", "EnKF": "EnKF", "PF": "PF",
+          "Ref.": "reference"}
 
 
 def plotted_dims(dim: int) -> list[int]:
@@ -127,13 +128,13 @@ def prior_data(model, pretrained, config, ensemble0, key, shocks, prior=None) ->
     network = None if pretrained is None else pretrained.network
     _, obs = csf_jax.simulate(model, key)
     source = _prior_for(params, prior, network, config)
-    result = csf_jax.filter(params, obs[:k], ensemble0, problem=model, key=k_filt, config=config,
+    result = csf_jax.filter(params, obs[:k], ensemble0, model=model, key=k_filt, config=config,
                             network=network, prior=prior, return_ensembles=True)
     post = result.ensembles[-1]
     prior_ens = propagate(model, k_prop, post)
     centers = jax.vmap(model.drift)(post)
     context = source.condition(params, centers, prior_ens, model.process_std)
-    own = dataclasses.replace(config, prior_inflation=0.0, adaptive_inflation=False)
+    own = dataclasses.replace(config, inflation=InflationConfig(base=0.0, adaptive=False))
     x_init, start = sampler_start(own, prior_ens, k_init)
     if uses_kalman(own):
         samples = ancestral_sample(params, source, context, model, obs[k], x_init, start, k_rev,
@@ -153,7 +154,7 @@ def prior_figure(out: str, name: str, data: dict) -> str:
     ax.hist(data["prior_ensemble"], bins=data["bins"], density=True, color="0.6", alpha=0.6,
             label="prior ensemble")
     ax.hist(data["csf_samples"], bins=data["bins"], density=True, histtype="step", lw=1.8,
-            color=COLORS["csf"], label=f"CSF samples\n({data['prior_name']} prior)")
+            color=COLORS["CSF"], label=f"CSF samples\n({data['prior_name']} prior)")
     ax.set_title(f"{name}: prior at filter step {data['step']} of run 0, from a CSF run on its data")
     ax.set_xlabel("x")
     ax.set_ylabel("density")

@@ -1,213 +1,159 @@
-"""Lorenz-96 baselines: the tuning sweep of the localised filter, the global EnKF and climatology.
+"""Lorenz-96: the local CSF in transform form against the LETKF and EnSF, tuned on runs of their own.
 
-    python -m experiments.lorenz96 [--runs R] [--steps K] [--out docs/lorenz96.md]
+    python -m experiments.lorenz96 [--setups identity,arctan,ensf,ensf_calm] [--runs 10]
+        [--out results/lorenz96] [--page docs/lorenz96.md]
 
-On the standard setup (d = 40, F = 8, dt = 0.05, every site observed every step, R = I, a perfect
-model) and on the arctan sensor (``lorenz96_arctan``, noise std 0.05): the LETKF over a grid of
-Gaspari-Cohn half-widths and multiplicative inflations with N = 40 and N = 20, the stochastic EnKF
-with N = 40 over inflations, and climatology (the attractor's mean as the estimate). RMSE is the
-time average of the per-step RMSE over sites, after the first ``burn_in`` steps (200), averaged over
-runs (the same runs for every filter: truth seed 0, ensemble seed 1). Each cell is cached under
-``runs/lorenz96`` (re-running resumes). Writes the tables and the best settings to ``--out``.
+Setups (``csf_jax.problems``):
+
+* ``identity``: d = 40, every site observed with R = I, N = 20 and 40, 1000 steps;
+* ``arctan``: d = 40, an arctan sensor with noise std 0.05, N = 40, started from the problem's
+  initial ensemble and from the truth (``x_0 + N(0, 0.1^2 I)``);
+* ``ensf`` and ``ensf_calm``: EnSF's setup (``lorenz96_ensf``: d = 100, arctan sensor, N = 20, an
+  ``N(0, I)`` ensemble far from the truth), with its random shocks of the truth and without.
+
+Filters: the LETKF and the transform CSF at the radius and inflation with the least RMSE on two
+tuning runs (runs 100 and 101, never tested on; the transform CSF takes the LETKF's choice on
+d = 40, where with a linear sensor it is the LETKF), the transform CSF with its defaults
+(``LocalTransformConfig()``, no tuning), and EnSF (``ENSFConfig(clip=50)``, EnSF's own settings) on
+EnSF's setup. A run's error is the time average of the RMSE over sites after the burn-in (200
+steps on d = 40; analyses 101-150 on EnSF's setup); a run is lost when that exceeds ``LOST`` or
+the filter diverged. Every run is a cached cell of ``experiments.harness``.
 """
 
 from __future__ import annotations
 
-import functools
-import json
-import os
-import sys
+import dataclasses
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 import csf_jax
 from csf_jax import problems
-from csf_jax.filters import driver
-from csf_jax.filters.letkf import LETKF, LETKFStatic
 from csf_jax.problems.lorenz96 import obs_sites
-from experiments._cli import int_at_least, parser, positive_int, write_page
-from experiments._timing import timed
-from experiments.run import machine
+from experiments import harness
 
-RADII = (2.0, 4.0, 6.0, 8.0, 10.0, 15.0)
-INFLATIONS = (1.0, 1.01, 1.02, 1.05, 1.1)
-SETUPS = ("lorenz96", "lorenz96_arctan")
-CACHE = os.path.join("runs", "lorenz96")
-BURN_IN = max(problems.config(name).burn_in for name in SETUPS)  # steps left out of the RMSE
-# Memory of one (run, filter step) the Lorenz-96 jobs hold at once: truth, observations, the
-# filters' means and spreads, d = 40 values each, at most 8 bytes (float64 in the ablation).
-BYTES_PER_RUN_STEP = 4 * problems.config("lorenz96").dim * 8
-MEMORY_LIMIT = 4 * 2 ** 30
-
-
-def data(name: str, runs: int, steps: int, particles: int):
-    """Truth ``(R, K+1, d)``, obs ``(R, K, m)``, initial ensembles ``(R, N, d)``, filter keys."""
-    model = problems.get(name, num_steps=steps)
-    truth, obs = jax.vmap(lambda k: csf_jax.simulate(model, k))(
-        jax.random.split(jax.random.key(0), runs))
-    ens = jax.vmap(lambda k: model.initial_ensemble(k, particles))(
-        jax.random.split(jax.random.key(1), runs))
-    return model, truth, obs, ens, jax.random.split(jax.random.key(2), runs)
+D40 = (("num_steps", 1000), ("burn_in", 200))
+CALM = (("shock_probs", ()), ("shock_sizes", ()))
+SETUPS = {  # name: (test cases, d = 40 grid or EnSF grid)
+    "identity": [harness.Case("lorenz96", D40, particles=n) for n in (20, 40)],
+    "arctan": [harness.Case("lorenz96_arctan", D40, particles=40),
+               harness.Case("lorenz96_arctan", D40, particles=40, start="truth", spread=0.1)],
+    "ensf": [harness.Case("lorenz96_ensf", particles=20)],
+    "ensf_calm": [harness.Case("lorenz96_ensf", CALM, particles=20)],
+}
+D40_GRID = [(r, i) for r in (2.0, 4.0, 8.0, 15.0) for i in (1.01, 1.02, 1.05, 1.1)]
+ENSF_GRID = [(r, i) for r in (1.0, 2.0, 4.0, 8.0) for i in (1.05, 1.1, 1.2, 1.4)]
+LOST = 1.0
+TUNE_RUNS, TUNE_FIRST = 2, 100
 
 
-_DATA = {}
+def _local(method: str, radius: float | None = None, inflation: float | None = None):
+    """Builder settings of a local filter on the case's ring; None: the config's defaults."""
+    def settings(case, model):
+        loc = csf_jax.ring_localization(model.dim, obs_sites(problems.config(
+            case.problem, **dict(case.settings))))
+        config = csf_jax.LETKFConfig() if method == "letkf" else csf_jax.LocalTransformConfig()
+        if radius is not None:
+            config = dataclasses.replace(config, radius=radius, inflation=inflation)
+        return {"localization": loc, "config": config}
+
+    return settings
 
 
-def _data(name: str, runs: int, steps: int, particles: int):
-    """``data``, memoised (a sweep reuses one set of runs)."""
-    key = (name, runs, steps, particles)
-    if key not in _DATA:
-        _DATA[key] = data(name, runs, steps, particles)
-    return _DATA[key]
+def window(case: harness.Case) -> tuple:
+    cfg = problems.config(case.problem, **dict(case.settings))
+    return cfg.burn_in, cfg.num_steps
 
 
-def time_rmse(mean, truth, burn_in: int) -> float:
-    """Runs-averaged time average of the per-step RMSE over sites, after ``burn_in`` steps."""
-    per_step = jnp.sqrt(jnp.mean((mean - truth[:, 1:]) ** 2, -1))
-    return float(jnp.mean(per_step[:, burn_in:]))
+def errors(outcome, case) -> np.ndarray:
+    """Per run, the time-averaged RMSE over sites in the case's window (inf: diverged)."""
+    return np.asarray(harness.summary(outcome, harness.simulate(case),
+                                      window(case))["window_rmse_per_run"])
 
 
-def cell(name: str, method: str, particles: int, runs: int, steps: int, **settings) -> dict:
-    """One (setup, method, N, settings) cell: cached RMSE and seconds per step."""
-    tag = "_".join([name, method, f"N{particles}", f"R{runs}", f"K{steps}"]
-                   + [f"{k}{v}" for k, v in sorted(settings.items())])
-    path = os.path.join(CACHE, tag + ".json")
-    if os.path.exists(path):
-        with open(path) as f:
-            return json.load(f)
-    cfg = problems.config(name, num_steps=steps)
-    model, truth, obs, ens, keys = _data(name, runs, steps, particles)
-    if method == "letkf":
-        run = _letkf_runner(name, model, cfg, settings["radius"])
-        args = (jnp.asarray(settings["inflation"], jnp.float32),)
-    elif method == "enkf":
-        run = _enkf_runner(model)
-        args = (jnp.asarray(settings["inflation"], jnp.float32),)
-    else:
-        raise ValueError(method)
-    result, seconds, _ = timed(run, obs, ens, keys, *args)
-    rmse = time_rmse(result.mean, truth, cfg.burn_in) if bool(result.finite.all()) else float("inf")
-    out = {"rmse": rmse, "seconds_per_step": seconds / (runs * steps)}
-    os.makedirs(CACHE, exist_ok=True)
-    with open(path, "w") as f:
-        json.dump(out, f)
-    return out
+def tune(case: harness.Case, method: str, grid, cache, progress) -> tuple:
+    """The grid point with the least mean error over the tuning runs of ``case``; and the
+    scores."""
+    short = (("num_steps", 500), ("burn_in", 200)) if case.settings == D40 else case.settings
+    tuning = dataclasses.replace(case, settings=short, runs=TUNE_RUNS, first_run=TUNE_FIRST,
+                                 start="model")
+    entries = [harness.Entry(f"{method} {r:g}/{i:g}", method, _local(method, r, i), batch=1)
+               for r, i in grid]
+    found = harness.run([tuning], entries, cache, progress)
+    scores = [float(errors(found[(tuning, e.label)], tuning).mean()) for e in entries]
+    return grid[int(np.nanargmin(np.where(np.isfinite(scores), scores, np.nan)))], scores
 
 
-@functools.cache
-def _letkf_runner(name, model, cfg, radius: float):
-    """One compiled LETKF over runs per (setup, radius); the inflation is an argument."""
-    static = LETKFStatic(float(radius), csf_jax.ring_localization(model.dim, obs_sites(cfg)))
-    return jax.jit(jax.vmap(lambda o, e, k, infl: driver.run(
-        LETKF, o, e, model=model, key=k, config=static, params=infl, check_finite=False),
-        in_axes=(0, 0, 0, None)))
+def setup_rows(name: str, cases, cache, progress, extra=()) -> list:
+    """The rows of one setup: each filter on each case, with its tuning."""
+    rows = []
+    for case in cases:
+        grid = D40_GRID if case.problem != "lorenz96_ensf" else ENSF_GRID
+        (r, i), scores = tune(case, "letkf", grid, cache, progress)
+        chosen = {"LETKF": ("letkf", (r, i), scores)}
+        if case.problem == "lorenz96_ensf":
+            chosen["transform CSF"] = ("local_transform",) + tune(case, "local_transform", grid,
+                                                                  cache, progress)
+        else:
+            chosen["transform CSF"] = ("local_transform", (r, i), scores)
+        entries = [harness.Entry(label, m, _local(m, *ri), batch=1)
+                   for label, (m, ri, _) in chosen.items()]
+        entries.append(harness.Entry("transform CSF, defaults", "local_transform",
+                                     _local("local_transform"), batch=1))
+        if case.problem == "lorenz96_ensf":
+            entries.append(harness.Entry("EnSF", "ensf", {"config": csf_jax.ENSFConfig(clip=50.0)},
+                                         batch=1))
+        entries += list(extra)
+        found = harness.run([case], entries, cache, progress)
+        data = harness.simulate(case)
+        for entry in entries:
+            outcome = found[(case, entry.label)]
+            err = errors(outcome, case)
+            lost = ~np.isfinite(err) | (err > LOST)
+            row = harness.describe(case, entry, outcome) | harness.summary(outcome, data,
+                                                                           window(case))
+            tuned = chosen.get(entry.label)
+            row |= {"setup": name, "error": float(err.mean()), "lost": int(lost.sum()),
+                    "error_kept": float(err[~lost].mean()) if (~lost).any() else None,
+                    "tuned": None if tuned is None else {"radius": tuned[1][0],
+                                                         "inflation": tuned[1][1],
+                                                         "grid_scores": tuned[2]}}
+            rows.append(row)
+    return rows
 
 
-@functools.cache
-def _enkf_runner(model):
-    """One compiled stochastic EnKF over runs; the inflation is an argument."""
-    return jax.jit(jax.vmap(lambda o, e, k, infl: csf_jax.ensemble_kalman_filter(
-        o, e, problem=model, key=k, inflation=infl, check_finite=False), in_axes=(0, 0, 0, None)))
-
-
-def climatology(name: str, runs: int, steps: int) -> float:
-    """RMSE of the attractor's mean (time and site average of long free runs) as the estimate."""
-    cfg = problems.config(name, num_steps=steps)
-    model, truth, *_ = data(name, runs, steps, 2)
-    long = jax.vmap(lambda k: csf_jax.simulate(problems.get(name, num_steps=5000), k)[0])(
-        jax.random.split(jax.random.key(99), 4))
-    return time_rmse(jnp.broadcast_to(long.mean(), truth[:, 1:].shape), truth, cfg.burn_in)
-
-
-def add_run_arguments(p, runs: int = 3, steps: int = 1000) -> None:
-    """``--runs`` and ``--steps`` of the Lorenz-96 jobs (their runs are this sweep's)."""
-    p.add_argument("--runs", type=positive_int, default=runs,
-                   help="independent runs, the same for every filter (default %(default)s)")
-    p.add_argument("--steps", type=int_at_least(BURN_IN + 1, why=f"the first {BURN_IN} steps are "
-                                                "burn-in, left out of the RMSE"),
-                   default=steps,
-                   help=f"filter steps per run, more than the {BURN_IN} burn-in steps left out of "
-                        f"the RMSE (default %(default)s)")
-
-
-def check_memory(p, runs: int, steps: int) -> None:
-    """Refuse ``runs x steps`` whose trajectories and filter output would not fit in memory."""
-    need = runs * (steps + 1) * BYTES_PER_RUN_STEP
-    if need > MEMORY_LIMIT:
-        most = MEMORY_LIMIT // BYTES_PER_RUN_STEP
-        p.error(f"argument --steps: {runs} runs x {steps} steps would hold about "
-                f"{need / 2 ** 30:.0f} GiB of trajectories and filter output in memory (truth, "
-                f"observations, means and spreads of every step); keep runs x steps <= {most}")
-
-
-DESCRIPTION = ("Lorenz-96 baselines: sweep the LETKF's localisation and inflation, the stochastic "
-               "EnKF's inflation and climatology on the standard and arctan setups; cache each "
-               "cell under runs/lorenz96 and write the tables to --out.")
-
-
-def build_parser():
-    """The command line of ``python -m experiments.lorenz96``."""
-    p = parser("lorenz96", DESCRIPTION)
-    add_run_arguments(p)
-    p.add_argument("--out", default=os.path.join("docs", "lorenz96.md"),
-                   help="markdown page to write (default %(default)s)")
-    return p
-
-
-def parse_args(argv=None):
-    p = build_parser()
-    args = p.parse_args(argv)
-    check_memory(p, args.runs, args.steps)
-    return args
+def page(record: dict) -> list:
+    """The generated block of the Lorenz-96 page."""
+    m = record["machine"]
+    body = []
+    for r in record["rows"]:
+        c, t = r["case"], r["tuned"]
+        body.append([r["setup"], c["particles"], c["start"] if c["start"] != "model" else "model",
+                     r["entry"], "-" if t is None else f"{t['radius']:g} / {t['inflation']:g}",
+                     harness.number(r["error"], 4), f"{r['lost']}/{r['runs']}",
+                     harness.number(r["error_kept"], 4), f"{r['seconds_per_step']:.2g}"])
+    return ([f"Made by `{record['command']}` on {record['date']}, {m['cpu']} ({m['cpu_count']} "
+             f"cores, jax {m['jax_backend']}). Error: per run, the time-averaged RMSE over sites "
+             f"after the burn-in, then the mean over runs (\"diverged\" if a run diverged); lost: "
+             f"runs above {LOST} or diverged; kept: the mean over the other runs. Radius / "
+             f"inflation: chosen on {TUNE_RUNS} tuning runs of their own.", ""]
+            + harness.table(["setup", "N", "start", "filter", "radius / inflation", "error",
+                             "lost", "error of kept runs", "s / step"], body))
 
 
 def main(argv=None):
-    args = parse_args(argv)
-    lines = ["# Lorenz-96 baselines", "",
-             f"Made by `python -m experiments.lorenz96 --runs {args.runs} --steps {args.steps}` on "
-             f"{machine().get('cpu')} (2 cores). Time-averaged RMSE after 200 burn-in steps, "
-             f"{args.runs} runs of {args.steps} steps; the same runs for every filter.", ""]
-    best = {}
-    for name in SETUPS:
-        cfg = problems.config(name)
-        lines += [f"## {name}: d = {cfg.dim}, sensor {cfg.sensor}, obs std {cfg.obs_std}", "",
-                  f"Climatology: {climatology(name, args.runs, args.steps):.3f}", ""]
-        for n in (40, 20):
-            lines += [f"LETKF, N = {n} (rows: Gaspari-Cohn half-width; columns: inflation)", "",
-                      "| radius | " + " | ".join(f"{i}" for i in INFLATIONS) + " |",
-                      "|---|" + "---|" * len(INFLATIONS)]
-            for radius in RADII:
-                row = []
-                for infl in INFLATIONS:
-                    r = cell(name, "letkf", n, args.runs, args.steps, radius=radius,
-                             inflation=infl)["rmse"]
-                    row.append(r)
-                    key = (name, "letkf", n)
-                    if r < best.get(key, (np.inf,))[0]:
-                        best[key] = (r, f"radius {radius}, inflation {infl}")
-                lines.append(f"| {radius} | " + " | ".join(f"{v:.3f}" for v in row) + " |")
-                print(f"{name} LETKF N={n} radius {radius}: "
-                      + " ".join(f"{v:.3f}" for v in row), file=sys.stderr, flush=True)
-            lines.append("")
-        row = []
-        for infl in INFLATIONS:
-            r = cell(name, "enkf", 40, args.runs, args.steps, inflation=infl)["rmse"]
-            row.append(r)
-            if r < best.get((name, "enkf", 40), (np.inf,))[0]:
-                best[(name, "enkf", 40)] = (r, f"inflation {infl}")
-        lines += ["Stochastic EnKF (global, perturbed observations), N = 40; columns: inflation",
-                  "", "| " + " | ".join(f"{i}" for i in INFLATIONS) + " |",
-                  "|" + "---|" * len(INFLATIONS),
-                  "| " + " | ".join(f"{v:.3f}" for v in row) + " |", ""]
-    lines += ["## Best settings", "", "| setup | filter | N | RMSE | settings |", "|---|---|---|---|---|"]
-    for (name, method, n), (r, s) in sorted(best.items()):
-        lines.append(f"| {name} | {method} | {n} | {r:.3f} | {s} |")
-    lines += ["", "Published on the standard setup: climatology about 3.6; EnKF with "
-              "40 members about 0.22; DEnKF about 0.18; LETKF with localisation about 0.22 with a "
-              "handful of members; a particle filter needs thousands of members for about 0.26."]
-    write_page(args.out, lines)
+    p = harness.parser("lorenz96", "The transform CSF against the LETKF and EnSF on Lorenz-96 "
+                       "(tuned on separate runs; cached, resumable); write results.json and the "
+                       "generated block of the Lorenz-96 page.")
+    harness.add_names(p, "--setups", SETUPS, what="setup")
+    harness.add_sizes(p, runs=10)
+    harness.add_outputs(p, "results/lorenz96", "docs/lorenz96.md")
+    args = p.parse_args(argv)
+    cache, rows = harness.Cache(args.cache), []
+    for name in args.setups:
+        cases = [dataclasses.replace(c, runs=args.runs) for c in SETUPS[name]]
+        rows += setup_rows(name, cases, cache, not args.no_progress, harness.extra_entries(args))
+    record = harness.results_record("lorenz96", harness.command("lorenz96", argv), rows)
+    harness.publish(args, record, page(record))
 
 
 if __name__ == "__main__":

@@ -18,8 +18,6 @@ import subprocess
 import sys
 import time
 
-from experiments._cli import parser
-
 PAGE = pathlib.Path(__file__).resolve().parents[1] / "docs" / "tutorial.md"
 
 
@@ -59,7 +57,7 @@ DESCRIPTION = ("Run the Python blocks of docs/tutorial.md as one script in OUT: 
 
 def build_parser() -> argparse.ArgumentParser:
     """The command line of ``python -m experiments.tutorial``."""
-    p = parser("tutorial", DESCRIPTION)
+    p = argparse.ArgumentParser(prog="python -m experiments.tutorial", description=DESCRIPTION)
     p.add_argument("out", nargs="?", default=str(PAGE.parent / "tutorial"), metavar="OUT",
                    help="folder to run the tutorial in (default %(default)s)")
     p.add_argument("--no-extras", action="store_true",

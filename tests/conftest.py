@@ -1,37 +1,35 @@
 """Shared fixtures: float64 mode and a linear-Gaussian problem with its exact Kalman solution.
 
-The suite is dominated by XLA compilations, not by running the compiled code, so it compiles with
-LLVM's optimisations off (``--xla_backend_optimization_level=0``, inherited by the CLI
-subprocesses): half the wall time. It changes code generation only; the results checked here are
-the same (benchmarks and ``experiments`` never set it).
+The tests run under the flags a user has: no XLA flags are set here.
 
-The PyTorch tests run last (``pytest_collection_modifyitems``): with torch loaded into the process,
-a later XLA compilation of the training step crashed the whole run with a segmentation fault
-(twice in two full runs with the ``bench`` extra installed; the same run without the PyTorch tests,
-and the PyTorch and training files on their own, pass).
+The PyTorch tests (``test_torch_equivalence.py``) run in a pytest process of their own
+(``test_torch_process.py`` starts it; ``pytest_ignore_collect`` keeps them out of this one): with
+torch loaded into the process, later XLA compilations crashed whole runs with a segmentation fault
+(in the training step's and in the CSF filter's compilation, with the ``bench`` extra installed),
+while the PyTorch file on its own passes.
 """
 
 import os
+from typing import NamedTuple
 
-os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
-                           + " --xla_backend_optimization_level=0").strip()
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
 
-from typing import NamedTuple  # noqa: E402
+from csf_jax.filters.kalman import kalman_filter
+from csf_jax.filters.result import FilterResult
+from csf_jax.problems.linear import LinearGaussian, linear_gaussian, to_model
+from csf_jax.ssm import StateSpaceModel, propagate
 
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
-import pytest  # noqa: E402
-
-from csf_jax.filters.kalman import kalman_filter  # noqa: E402
-from csf_jax.filters.result import FilterResult  # noqa: E402
-from csf_jax.problems.linear import LinearGaussian, linear_gaussian, to_model  # noqa: E402
-from csf_jax.ssm import StateSpaceModel, propagate  # noqa: E402
+TORCH_PROCESS = "CSF_TORCH_PROCESS"  # set in the process that runs the PyTorch tests
 
 
-def pytest_collection_modifyitems(config, items):
-    """Move the PyTorch tests to the end of the run (module docstring); the order is otherwise kept."""
-    items.sort(key=lambda item: item.path.name == "test_torch_equivalence.py")
+def pytest_ignore_collect(collection_path, config):
+    """The PyTorch tests only in their own process (module docstring)."""
+    if collection_path.name == "test_torch_equivalence.py":
+        return os.environ.get(TORCH_PROCESS) != "1"
+    return None
 
 
 def simulate_linear(lg: LinearGaussian, seed: int) -> np.ndarray:
@@ -53,6 +51,14 @@ def simulate_linear(lg: LinearGaussian, seed: int) -> np.ndarray:
 def linear_obs():
     """``simulate_linear`` as a fixture: ``linear_obs(lg, seed) -> obs (K, m)`` numpy float64."""
     return simulate_linear
+
+
+@pytest.fixture
+def highest_precision():
+    """The test's float32 matrix products at full precision, the precision it checks
+    (``jax.default_matmul_precision("highest")``): on GPUs the default lets them use TF32."""
+    with jax.default_matmul_precision("highest"):
+        yield
 
 
 @pytest.fixture
@@ -122,7 +128,7 @@ def make_linear_case(obs_dim: int, num_particles: int, seed: int = 0,
     ensemble = model.initial_ensemble(jax.random.key(100 + seed), num_particles)
     prior = (_prior_only_mean(model, ensemble, obs.shape[0], jax.random.key(200 + seed))
              if with_prior else None)
-    return LinearCase(lg, model, obs, ensemble, kalman_filter(obs, lg=lg), prior)
+    return LinearCase(lg, model, obs, ensemble, kalman_filter(obs, model=lg), prior)
 
 
 @pytest.fixture(params=[1, 2], ids=["m1", "m2"])

@@ -103,7 +103,7 @@ def test_covariance_config_errors():
     with pytest.raises(ValueError, match="radius"):
         CovarianceConfig("localised", radius=0.0)
     with pytest.raises(TypeError, match="covariance"):
-        csf_jax.CSFConfig(covariance="ledoit_wolf")
+        csf_jax.CSFConfig(prior=csf_jax.PriorConfig(covariance="ledoit_wolf"))
 
 
 def test_the_kalman_precision_uses_the_estimator(x64):
@@ -122,9 +122,9 @@ def test_the_filter_uses_the_configured_covariance(x64):
     model = csf_jax.problems.get("cubic10_indep", num_steps=3)
     truth, obs = csf_jax.simulate(model, jax.random.key(0))
     ens = model.initial_ensemble(jax.random.key(1), 20)
-    runs = {name: csf_jax.filter(None, obs, ens, problem=model, key=jax.random.key(2),
+    runs = {name: csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(2),
                                  prior=gaussian_prior(25.0, c),
-                                 config=csf_jax.CSFConfig(reverse_steps=4, covariance=c)).mean
+                                 config=csf_jax.CSFConfig(sampler=csf_jax.SamplerConfig(reverse_steps=4), prior=csf_jax.PriorConfig(covariance=c))).mean
             for name, c in (("sample", CovarianceConfig()), ("localised", cfg))}
     assert np.all(np.isfinite(runs["localised"]))
     assert np.abs(runs["localised"] - runs["sample"]).max() > 1e-3

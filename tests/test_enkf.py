@@ -22,21 +22,21 @@ def test_enkf_matches_kalman(linear_case):
     ignores the observations (mean error >= 0.65 RMS, several stds at worst); both are checked.
     """
     case = linear_case
-    enkf = ensemble_kalman_filter(case.obs, case.ensemble, problem=case.model, key=jax.random.key(1))
+    enkf = ensemble_kalman_filter(case.obs, case.ensemble, model=case.model, key=jax.random.key(1))
     err = case.errors(enkf.mean, enkf.std)
     assert err.mean_rms < 0.04 and err.mean_max < 0.1, err
     assert err.std_rms < 0.02 and err.std_max < 0.05, err
 
     prior = case.errors(case.prior_mean)
     assert prior.mean_rms > 0.5, prior
-    wrong = kalman_filter(case.obs, lg=case.lg._replace(r_std=1.5 * case.lg.r_std))
+    wrong = kalman_filter(case.obs, model=case.lg._replace(r_std=1.5 * case.lg.r_std))
     assert case.errors(wrong.mean, wrong.std).std_rms > 0.15
 
 
 def test_enkf_result_fields(small_case):
     case = small_case
     K, N, d = case.obs.shape[0], case.ensemble.shape[0], case.ensemble.shape[1]
-    run = functools.partial(ensemble_kalman_filter, case.obs, case.ensemble, problem=case.model,
+    run = functools.partial(ensemble_kalman_filter, case.obs, case.ensemble, model=case.model,
                             key=jax.random.key(0))
     full = run(return_ensembles=True)
     assert full.mean.shape == full.std.shape == (K, d)
@@ -52,7 +52,7 @@ def test_enkf_result_fields(small_case):
 def test_enkf_inflation(small_case):
     """Inflation 1 is the default; inflation > 1 widens the analysis ensemble."""
     case = small_case
-    run = functools.partial(ensemble_kalman_filter, case.obs, case.ensemble, problem=case.model,
+    run = functools.partial(ensemble_kalman_filter, case.obs, case.ensemble, model=case.model,
                             key=jax.random.key(2))
     base, same, wide = run(), run(inflation=1.0), run(inflation=1.5)
     np.testing.assert_array_equal(base.mean, same.mean)
@@ -67,19 +67,19 @@ def test_enkf_vmap_matches_loop(small_case):
     obs = jnp.stack([case.obs, case.obs + 0.1, case.obs - 0.2])
     ens = jnp.stack([case.ensemble, case.ensemble * 0.9, case.ensemble + 0.5])
     keys = jax.random.split(jax.random.key(3), 3)
-    batched = jax.vmap(lambda o, e, k: ensemble_kalman_filter(o, e, problem=case.model, key=k))(
+    batched = jax.vmap(lambda o, e, k: ensemble_kalman_filter(o, e, model=case.model, key=k))(
         obs, ens, keys)
     for i in range(3):
-        single = ensemble_kalman_filter(obs[i], ens[i], problem=case.model, key=keys[i])
+        single = ensemble_kalman_filter(obs[i], ens[i], model=case.model, key=keys[i])
         np.testing.assert_allclose(batched.mean[i], single.mean, rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(batched.std[i], single.std, rtol=1e-9, atol=1e-12)
 
 
 def test_enkf_under_outer_jit(small_case):
     case = small_case
-    run = jax.jit(functools.partial(ensemble_kalman_filter, problem=case.model))
+    run = jax.jit(functools.partial(ensemble_kalman_filter, model=case.model))
     jitted = run(case.obs, case.ensemble, key=jax.random.key(5))
-    direct = ensemble_kalman_filter(case.obs, case.ensemble, problem=case.model,
+    direct = ensemble_kalman_filter(case.obs, case.ensemble, model=case.model,
                                     key=jax.random.key(5))
     np.testing.assert_allclose(jitted.mean, direct.mean, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(jitted.std, direct.std, rtol=1e-9, atol=1e-12)
@@ -87,7 +87,7 @@ def test_enkf_under_outer_jit(small_case):
 
 def test_enkf_keys(small_case):
     case = small_case
-    run = functools.partial(ensemble_kalman_filter, case.obs, case.ensemble, problem=case.model)
+    run = functools.partial(ensemble_kalman_filter, case.obs, case.ensemble, model=case.model)
     a, b, c = run(key=jax.random.key(7)), run(key=jax.random.key(7)), run(key=jax.random.key(8))
     np.testing.assert_array_equal(a.mean, b.mean)
     assert not np.allclose(a.mean, c.mean)
@@ -106,12 +106,12 @@ def test_enkf_bad_inputs(small_case, change, error, match):
     case = small_case
     obs, ens = change(case.obs, case.ensemble)
     with pytest.raises(error, match=match):
-        ensemble_kalman_filter(obs, ens, problem=case.model, key=jax.random.key(0))
+        ensemble_kalman_filter(obs, ens, model=case.model, key=jax.random.key(0))
 
 
 def test_enkf_requires_key(small_case):
     case = small_case
     with pytest.raises(TypeError):
-        ensemble_kalman_filter(case.obs, case.ensemble, problem=case.model)
+        ensemble_kalman_filter(case.obs, case.ensemble, model=case.model)
     with pytest.raises(TypeError, match="key"):
-        ensemble_kalman_filter(case.obs, case.ensemble, problem=case.model, key=None)
+        ensemble_kalman_filter(case.obs, case.ensemble, model=case.model, key=None)

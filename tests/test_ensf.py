@@ -59,7 +59,7 @@ def test_one_analysis_is_near_the_kalman_posterior():
         return m + gain * (y - m), np.sqrt((1 - gain) * P)
 
     mean, std = kalman(R)
-    out = ensf(jnp.asarray([[y]], jnp.float32), jnp.asarray(ens, jnp.float32), problem=model,
+    out = ensf(jnp.asarray([[y]], jnp.float32), jnp.asarray(ens, jnp.float32), model=model,
                key=jax.random.key(3))
     err = (float(out.mean[0, 0]) - mean) / std
     assert abs(err) < 0.5, err
@@ -74,7 +74,7 @@ def test_jit_vmap_and_keys():
     ens = jnp.asarray(np.random.default_rng(2).standard_normal((2, 20, 2)), jnp.float32)
     keys = jax.random.split(jax.random.key(4), 2)
     config = ENSFConfig(reverse_steps=20)
-    run = functools.partial(ensf, problem=model, config=config)
+    run = functools.partial(ensf, model=model, config=config)
     plain = [run(obs[i], ens[i], key=keys[i]) for i in range(2)]
     batched = jax.jit(jax.vmap(lambda o, e, k: run(o, e, key=k).mean))(obs, ens, keys)
     for i in range(2):
@@ -95,10 +95,10 @@ def test_missing_entries_are_ignored():
     ens = jnp.asarray(np.random.default_rng(5).standard_normal((20, 2)), jnp.float32)
     config = ENSFConfig(reverse_steps=20)
     run = functools.partial(ensf, ensemble=ens, key=jax.random.key(6), config=config)
-    gap = run(jnp.array([[1.5, jnp.nan], [jnp.nan, jnp.nan]]), problem=both)
-    one = run(jnp.array([[1.5], [jnp.nan]]), problem=first)
+    gap = run(jnp.array([[1.5, jnp.nan], [jnp.nan, jnp.nan]]), model=both)
+    one = run(jnp.array([[1.5], [jnp.nan]]), model=first)
     np.testing.assert_allclose(gap.mean, one.mean, rtol=1e-5, atol=1e-5)
-    full = run(jnp.array([[1.5, -3.0], [jnp.nan, jnp.nan]]), problem=both)
+    full = run(jnp.array([[1.5, -3.0], [jnp.nan, jnp.nan]]), model=both)
     assert float(jnp.abs(full.mean[0, 1] - gap.mean[0, 1])) > 0.3
     assert bool(jnp.isfinite(gap.mean).all())
 
@@ -106,7 +106,7 @@ def test_missing_entries_are_ignored():
 def test_bad_inputs_raise():
     _, model = _static_model(2, 2)
     obs, ens, key = jnp.zeros((3, 2)), jnp.ones((8, 2)), jax.random.key(0)
-    run = functools.partial(ensf, problem=model, key=key)
+    run = functools.partial(ensf, model=model, key=key)
     cases = [
         (lambda: run(jnp.zeros((3, 3)), ens), "obs has dimension m=3"),
         (lambda: run(jnp.zeros(3), ens), r"obs must have shape \(K, m\)"),
@@ -179,7 +179,7 @@ def test_short_run_tracks_the_truth():
         model = problems.get("lorenz96_ensf", dim=40, num_steps=30, burn_in=10, **calm)
         truth, obs = csf_jax.simulate(model, jax.random.key(0))
         ens = model.initial_ensemble(jax.random.key(1), 20)
-        out = ensf(obs, ens, problem=model, key=jax.random.key(2), config=ENSFConfig(clip=50.0))
+        out = ensf(obs, ens, model=model, key=jax.random.key(2), config=ENSFConfig(clip=50.0))
         assert bool(out.finite.all())
 
         def free(ens, key):

@@ -7,16 +7,16 @@ import pytest
 
 pytest.importorskip("matplotlib")
 
-from csf_jax import problems  # noqa: E402
-from experiments import figures, run  # noqa: E402
+from csf_jax import CSFConfig, SamplerConfig  # noqa: E402
+from experiments import figures, harness, run  # noqa: E402
 
 
 def _prior_data(pretrained=None, steps=10):
-    model = problems.get("double_well", num_steps=12)
-    _, _, shocks, ens, _ = run.simulate_runs(model, 1, 256, 0)
-    config = run.csf_config("double_well", steps=steps)
-    return figures.prior_data(model, pretrained, config, ens[0], run.run_keys(0, 1)[0, 0],
-                              np.asarray(shocks[0]))
+    case = harness.Case("double_well", (("num_steps", 12),), runs=1, particles=256)
+    data = harness.simulate(case)
+    config = CSFConfig(sampler=SamplerConfig(reverse_steps=steps))
+    return figures.prior_data(case.model, pretrained, config, data.ensembles[0],
+                              harness.run_keys(0, [0])[0, 0], np.asarray(data.shocks[0]))
 
 
 def _check_spread(data):
@@ -46,7 +46,7 @@ def test_estimates_and_rmse_figures_are_written(tmp_path):
     truth = rng.standard_normal((2, 11, 1))
     shocks = np.zeros((2, 10), bool)
     shocks[0, 4] = True
-    means = {m: truth[:, 1:] + 0.1 * rng.standard_normal((2, 10, 1)) for m in run.METHODS}
+    means = {m: truth[:, 1:] + 0.1 * rng.standard_normal((2, 10, 1)) for m in run.LABELS}
     for path in (figures.estimates(str(tmp_path), "x", truth, shocks, means),
                  figures.rmse_over_time(str(tmp_path), "x", truth, shocks, means)):
         assert (tmp_path / path.split("/")[-1]).stat().st_size > 5_000

@@ -7,9 +7,12 @@ import numpy as np
 import pytest
 
 import csf_jax
-from csf_jax import CSFConfig, problems
+from csf_jax import CSFConfig, InflationConfig, PriorConfig, SamplerConfig, problems
 from csf_jax.inflation import adaptive_inflation, innovation_statistic
 from csf_jax.problems.linear import linear_gaussian, to_model
+
+# compared against closed forms (or the PyTorch port) at full float32 precision
+pytestmark = pytest.mark.usefixtures("highest_precision")
 
 D = 4
 MODEL = to_model(linear_gaussian(D, q_std=0.3, r_std=0.5))  # h = identity, r = 0.25
@@ -57,8 +60,8 @@ def test_filter_with_adaptive_inflation_is_deterministic_and_jittable():
     model = problems.get("double_well", num_steps=4)
     ens = model.initial_ensemble(jax.random.key(0), 64)
     _, obs = csf_jax.simulate(model, jax.random.key(1))
-    cfg = CSFConfig(reverse_steps=5, prior_inflation=0.1, adaptive_inflation=True)
-    run = lambda o, e, k: csf_jax.filter(None, o, e, problem=model, key=k, config=cfg,
+    cfg = CSFConfig(sampler=SamplerConfig(reverse_steps=5), inflation=InflationConfig(base=0.1, adaptive=True))
+    run = lambda o, e, k: csf_jax.filter(None, o, e, model=model, key=k, config=cfg,
                                          check_finite=False).mean
     a = run(obs, ens, jax.random.key(2))
     b = jax.jit(run)(obs, ens, jax.random.key(2))
@@ -67,12 +70,12 @@ def test_filter_with_adaptive_inflation_is_deterministic_and_jittable():
 
 
 def test_config_checks():
-    with pytest.raises(ValueError, match="inflation_max"):
-        CSFConfig(inflation_max=0.0)
-    with pytest.raises(ValueError, match="inflation_statistic"):
-        CSFConfig(inflation_statistic="mean")
+    with pytest.raises(ValueError, match="InflationConfig.max"):
+        CSFConfig(inflation=InflationConfig(max=0.0))
+    with pytest.raises(ValueError, match="InflationConfig.statistic"):
+        CSFConfig(inflation=InflationConfig(statistic="mean"))
     with pytest.raises(ValueError, match="encode_particles"):
-        CSFConfig(encode_particles=1)
+        CSFConfig(prior=PriorConfig(encode_particles=1))
 
 
 def test_median_statistic_ignores_one_outlying_coordinate():

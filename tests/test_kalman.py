@@ -39,7 +39,7 @@ def test_scalar_kalman_matches_numpy(x64, linear_obs):
         mean, var = mean + gain * (y - 2.0 * mean), (1.0 - 2.0 * gain) * var
         ref_mean.append(mean)
         ref_var.append(var)
-    kf = kalman_filter(obs, lg=lg)
+    kf = kalman_filter(obs, model=lg)
     assert kf.mean.dtype == jnp.float64 and kf.mean.shape == (30, 1)
     assert kf.ensembles is None and kf.ess is None
     np.testing.assert_allclose(kf.mean[:, 0], ref_mean, rtol=1e-10, atol=1e-10)
@@ -57,7 +57,7 @@ def test_kalman_matches_numpy_multivariate(x64, linear_obs):
     np.testing.assert_allclose(covs, ref_covs, rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(covs, np.swapaxes(covs, -1, -2), atol=1e-14)
     assert np.all(np.linalg.eigvalsh(np.asarray(covs)) > 0)
-    kf = kalman_filter(obs, lg=lg)
+    kf = kalman_filter(obs, model=lg)
     np.testing.assert_allclose(kf.std, np.sqrt(np.diagonal(ref_covs, axis1=1, axis2=2)),
                                rtol=1e-10)
 
@@ -66,10 +66,10 @@ def test_kalman_jit_vmap_float32(linear_obs):
     """Default float32: runs, and batching over runs with vmap equals separate calls."""
     lg = linear_gaussian(2, 2)
     obs = jnp.asarray(np.stack([linear_obs(lg, seed) for seed in range(3)]))
-    batched = jax.jit(jax.vmap(lambda o: kalman_filter(o, lg=lg)))(obs)
+    batched = jax.jit(jax.vmap(lambda o: kalman_filter(o, model=lg)))(obs)
     assert batched.mean.dtype == jnp.float32 and batched.mean.shape == (3, 20, 2)
     for i in range(3):
-        single = kalman_filter(obs[i], lg=lg)
+        single = kalman_filter(obs[i], model=lg)
         np.testing.assert_allclose(batched.mean[i], single.mean, rtol=1e-5, atol=1e-6)
         np.testing.assert_allclose(batched.std[i], single.std, rtol=1e-5, atol=1e-6)
 
@@ -112,4 +112,4 @@ def test_to_model_is_cached_and_consistent():
 ])
 def test_kalman_bad_inputs(obs, error, match):
     with pytest.raises(error, match=match):
-        kalman_filter(obs, lg=linear_gaussian(2, 2))
+        kalman_filter(obs, model=linear_gaussian(2, 2))

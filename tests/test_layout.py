@@ -8,11 +8,12 @@ import pathlib
 import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1] / "csf_jax"
-LAYERS = {"filters": 1, "training": 2, "pretrained": 3, "__init__": 4}
+LAYERS = {"filters": 1, "methods": 1, "training": 2, "pretrained": 3, "__init__": 4}
 
 
 def _layer(module: str) -> int:
-    """``csf_jax.filters.csf`` -> 1; core modules (``ssm``, ``prior``, ``problems``, ...) -> 0."""
+    """``csf_jax.filters.csf`` and ``csf_jax.methods`` (the filters' registry) -> 1; core modules
+    (``ssm``, ``prior``, ``problems``, ...) -> 0."""
     parts = module.split(".")[1:]
     if not parts:
         return LAYERS["__init__"]

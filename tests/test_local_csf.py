@@ -174,10 +174,10 @@ def test_filter_is_near_kalman_on_a_linear_ring(sampler):
         jax.random.split(jax.random.key(1), runs))
     loc = csf_jax.ring_localization(d, np.arange(d))
     config = LocalCSFConfig(half_width=3, block=8, inflation=1.0, sampler=sampler)
-    result = jax.vmap(lambda o, e, k: local_filter(o, e, problem=model, key=k, localization=loc,
+    result = jax.vmap(lambda o, e, k: local_filter(o, e, model=model, key=k, localization=loc,
                                                    config=config, check_finite=False))(
         obs, ens, jax.random.split(jax.random.key(2), runs))
-    kalman = jax.vmap(lambda o: csf_jax.kalman_filter(o, lg=lg))(obs)
+    kalman = jax.vmap(lambda o: csf_jax.kalman_filter(o, model=lg))(obs)
     err = float(jnp.sqrt(jnp.mean((result.mean - truth[:, 1:]) ** 2)))
     best = float(jnp.sqrt(jnp.mean((kalman.mean - truth[:, 1:]) ** 2)))
     assert err < 1.1 * best, (err, best)
@@ -191,7 +191,7 @@ def test_lorenz96_smoke_same_key_and_missing():
     obs = csf_jax.drop_observations(jax.random.key(5), obs, 0.2)
     ens = model.initial_ensemble(jax.random.key(1), 40)
     loc = csf_jax.ring_localization(40, np.arange(40))
-    run = jax.jit(lambda k: local_filter(obs, ens, problem=model, key=k, localization=loc,
+    run = jax.jit(lambda k: local_filter(obs, ens, model=model, key=k, localization=loc,
                                          check_finite=False))
     a, b = run(jax.random.key(2)), run(jax.random.key(2))
     np.testing.assert_array_equal(np.asarray(a.mean), np.asarray(b.mean))
@@ -204,7 +204,7 @@ def test_refuses_what_it_cannot_localise():
     _, obs = csf_jax.simulate(model, jax.random.key(0))
     ens = model.initial_ensemble(jax.random.key(1), 8)
     ring = csf_jax.ring_localization(12, np.arange(12))
-    kw = dict(problem=model, key=jax.random.key(2), config=LocalCSFConfig(half_width=2, block=6))
+    kw = dict(model=model, key=jax.random.key(2), config=LocalCSFConfig(half_width=2, block=6))
     assert local_filter(obs, ens, localization=ring, **kw).mean.shape == (3, 12)
     with pytest.raises(ValueError, match="ring of d=12"):
         local_filter(obs, ens, localization=csf_jax.ring_localization(11, np.arange(12)), **kw)
@@ -213,7 +213,7 @@ def test_refuses_what_it_cannot_localise():
                                                                     for i in range(12))), **kw)
     mixing = model._replace(observe=lambda x: x + 0.5 * jnp.roll(x, 1))
     with pytest.raises(ValueError, match="not a point sensor"):
-        local_filter(obs, ens, localization=ring, **dict(kw, problem=mixing))
+        local_filter(obs, ens, localization=ring, **dict(kw, model=mixing))
     with pytest.raises(ValueError, match="wider than the ring"):
         local_filter(obs, ens, localization=ring,
                      **dict(kw, config=LocalCSFConfig(half_width=6, block=13)))

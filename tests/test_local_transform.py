@@ -1,7 +1,9 @@
 """The transform-form local CSF: the LETKF with a linear sensor, the exact posterior where the
-LETKF's linearisation fails, the window sensor, and its input checks."""
+LETKF's linearisation fails, the sensor's states, the chunked analysis against the direct
+formulas, and its input checks."""
 
-import types
+
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -22,7 +24,7 @@ def _run_both(name, config, x64_dtype=jnp.float64, drop=0.0, steps=15):
         obs = csf_jax.drop_observations(jax.random.key(5), obs, drop)
     ens = model.initial_ensemble(jax.random.key(1), 12).astype(x64_dtype)
     loc = csf_jax.ring_localization(model.dim, obs_sites(cfg))
-    kw = dict(problem=model, key=jax.random.key(2), localization=loc)
+    kw = dict(model=model, key=jax.random.key(2), localization=loc)
     ref = csf_jax.letkf(obs.astype(x64_dtype), ens,
                         config=csf_jax.LETKFConfig(config.radius, config.inflation), **kw)
     got = lt.local_transform_filter(obs.astype(x64_dtype), ens, config=config, **kw)
@@ -46,7 +48,7 @@ def test_every_second_site_is_the_letkf(x64):
     _, obs = csf_jax.simulate(model, jax.random.key(0))
     ens = model.initial_ensemble(jax.random.key(1), 10).astype(jnp.float64)
     loc = csf_jax.ring_localization(20, np.arange(0, 20, 2))
-    kw = dict(problem=model, key=jax.random.key(2), localization=loc)
+    kw = dict(model=model, key=jax.random.key(2), localization=loc)
     ref = csf_jax.letkf(obs.astype(jnp.float64), ens, config=csf_jax.LETKFConfig(5.0, 1.03), **kw)
     got = lt.local_transform_filter(obs.astype(jnp.float64), ens,
                                     config=lt.LocalTransformConfig(5.0, 1.03), **kw)
@@ -79,8 +81,7 @@ def test_arctan_analysis_matches_the_exact_posterior_where_the_letkf_does_not(x6
     forecast = jnp.asarray(1.5 + rng.standard_normal((n, d)))
     y = jnp.asarray(np.arctan(1.5 + rng.standard_normal(d)) + 0.05 * rng.standard_normal(d))
     loc = csf_jax.ring_localization(d, np.arange(d))
-    table, taper = lt.window_sensor(loc, 0.4)
-    post = lt.transform_analysis(forecast, y, model, table, taper,
+    post = lt.transform_analysis(forecast, y, model, loc,
                                  lt.LocalTransformConfig(radius=0.4, top_iterations=20))
     index, weight = local_obs(loc, 0.4)
     linear = letkf_analysis(forecast, y, model, jnp.asarray(index), weight)
@@ -91,29 +92,228 @@ def test_arctan_analysis_matches_the_exact_posterior_where_the_letkf_does_not(x6
     assert (np.abs(np.asarray(linear.mean(0)) - mean) / std).max() > 2.0
 
 
-def test_window_observe_reads_each_entry_at_its_own_value():
-    """A sensor with two observations of one site and a different function per observation."""
-    d = 10
+def _two_per_site_model(d=10):
+    """A point sensor with two observations of site 3 and a different function per observation:
+    its sites, the functions (numpy) and a model with it."""
     sites = [3, 3, 7, 0, 9, 5]
+    funcs = [np.arctan, np.square, np.sin, lambda v: 2.0 * v, lambda v: v ** 3,
+             lambda v: np.exp(0.1 * v)]
 
     def observe(x):
         return jnp.stack([jnp.arctan(x[3]), x[3] ** 2, jnp.sin(x[7]), 2.0 * x[0], x[9] ** 3,
                           jnp.exp(0.1 * x[5])])
 
-    funcs = [np.arctan, np.square, np.sin, lambda v: 2.0 * v, lambda v: v ** 3,
-             lambda v: np.exp(0.1 * v)]
-    model = types.SimpleNamespace(observe=observe)
+    model = csf_jax.StateSpaceModel(
+        name="two_per_site", dim=d, obs_dim=6, num_steps=3, dt=0.1, drift=lambda x: 0.9 * x,
+        observe=observe, process_std=0.1, obs_noise=csf_jax.gaussian_noise(0.5),
+        initial_truth=lambda key: jax.random.normal(key, (d,)),
+        initial_ensemble=lambda key, n: jax.random.normal(key, (n, d)))
+    return sites, funcs, model
+
+
+@pytest.mark.parametrize("classes", [1, 2, 5])
+def test_sensor_states_read_each_entry_at_its_own_value(classes):
+    """Window values packed on full-length states, observed, and read back: each entry gets its
+    own observation's function of its own value (two observations of one site, one function
+    each), and every entry of every class is read."""
+    d = 10
+    sites, funcs, model = _two_per_site_model(d)
     loc = csf_jax.ring_localization(d, sites)
-    table, taper = lt.window_sensor(loc, 2.0)
-    values = np.random.default_rng(1).standard_normal((3,) + table.index.shape)
-    h, dh = lt.window_observe(model, table, jnp.asarray(values))
-    want = np.vectorize(lambda j, v: funcs[j](v))(table.index[None], values)
-    np.testing.assert_allclose(np.asarray(h), want, rtol=1e-5, atol=1e-6)
-    step = 1e-3
-    slope = (np.vectorize(lambda j, v: funcs[j](v))(table.index[None], values + step)
-             - np.vectorize(lambda j, v: funcs[j](v))(table.index[None], values - step)) / 2 / step
-    np.testing.assert_allclose(np.asarray(dh), slope, rtol=1e-3, atol=1e-3)
-    assert table.site.shape == taper.shape
+    info = lt.localization_obs(loc)
+    assert info.slots == 2 and not info.identity
+    plan = lt.transform_plan(d, 2.0, slots=info.slots, classes=classes)
+    assert (plan.left, plan.right, plan.entries) == (3, 3, 14)
+    observe = lt.sites_observer(model, info, jnp.float32)
+    rng = np.random.default_rng(1)
+    q = d // classes
+    for c in range(classes):
+        values = rng.standard_normal((3, plan.entries, q)).astype(np.float32)
+        states = lt.pack_states(jnp.asarray(values), c, plan=plan, ring=lt.Ring())
+        assert states.shape == (2, plan.states, 3, d)
+        h, dh = observe(states)
+        got = np.asarray(lt.unpack_states(jnp.concatenate([h, dh], 2), c, plan=plan,
+                                          ring=lt.Ring()))
+        for i in range(q):
+            site = i * classes + c
+            for e in range(plan.entries):
+                o, slot = divmod(e, 2)
+                read = (site + o - plan.left) % d
+                if not info.has[slot, read]:
+                    assert got[:3, e, i].tolist() == [0.0] * 3
+                    continue
+                f = funcs[info.index[slot, read]]
+                v = values[:, e, i].astype(np.float64)
+                np.testing.assert_allclose(got[:3, e, i], f(v), rtol=1e-5, atol=1e-6)
+                np.testing.assert_allclose(got[3:, e, i], (f(v + 1e-3) - f(v - 1e-3)) / 2e-3,
+                                           rtol=1e-3, atol=1e-3)
+
+
+@functools.partial(jax.jit, static_argnums=(2, 3, 4))
+def _direct_analysis(forecast, y, model, loc, config):
+    """The analysis written directly over all sites at once, in the ensemble coordinates (the
+    module docstring's formulas, with each observation window found by ``local_obs``): the
+    reference the classes, member groups, eigenvector coordinates, null block and Woodbury
+    solves of ``lt.analysis`` must reproduce to round-off."""
+    n, d = forecast.shape
+    index, taper = local_obs(loc, float(config.radius))
+    sites = np.asarray(loc.obs, np.float64).astype(np.int64)
+    site = jnp.asarray(sites[index])                                     # (d, W)
+    mean = forecast.mean(0)
+    z = (forecast - mean) / jnp.sqrt(n - 1.0)
+    zs = jnp.transpose(z[:, site], (1, 2, 0))                             # (d, W, N)
+    xs = mean[site]
+    mask = ~jnp.isnan(y)
+    prec = jnp.where(mask, 1.0 / model.obs_noise.gaussian_std ** 2, 0.0)
+    rho = jnp.asarray(taper) * prec[index]
+    yw = jnp.where(mask, y, 0.0)[index]
+    eye = jnp.eye(n)
+    rows = jnp.asarray(index)
+
+    def sensor(w):                                                         # (B, d, N)
+        vals = xs + jnp.einsum("dwk,bdk->bdw", zs, w)
+        out = []
+        for b in range(vals.shape[0]):
+            def one(v, j, s):
+                x = jnp.zeros(d).at[s].set(v)
+                return jax.jvp(lambda x: model.observe(x)[j], (x,), (jnp.ones(d),))
+            h, dh = jax.vmap(jax.vmap(one))(vals[b], rows, site)
+            out.append((h, dh))
+        return jnp.stack([o[0] for o in out]), jnp.stack([o[1] for o in out])
+
+    def cost(u, h):
+        return 0.5 * jnp.sum(u ** 2, -1) + 0.5 * jnp.sum(rho * (yw - h) ** 2, -1)
+
+    u = jnp.zeros((d, n))
+    h, dh = sensor(u[None])
+    h, dh, c, lm = h[0], dh[0], cost(u, h[0]), jnp.zeros(d)
+    for _ in range(config.top_iterations):
+        jac = dh[..., None] * zs
+        hess = eye + jnp.einsum("dwk,dw,dwl->dkl", jac, rho, jac)
+        grad = u - jnp.einsum("dwk,dw->dk", jac, rho * (yw - h))
+        damped = hess + (lm[:, None, None] * eye) * jnp.diagonal(hess, axis1=1, axis2=2)[:, None]
+        trial = u - jnp.linalg.solve(damped, grad[..., None])[..., 0]
+        h_t, dh_t = sensor(trial[None])
+        c_t = cost(trial, h_t[0])
+        better = c_t < c
+        u = jnp.where(better[:, None], trial, u)
+        h, dh = jnp.where(better[:, None], h_t[0], h), jnp.where(better[:, None], dh_t[0], dh)
+        c, lm = jnp.where(better, c_t, c), jnp.where(better, lm / 4, jnp.maximum(4 * lm, 0.25))
+    jac = dh[..., None] * zs
+    lam, vec = jnp.linalg.eigh(jnp.einsum("dwk,dw,dwl->dkl", jac, rho, jac))
+    p = 1.0 / (1.0 + jnp.maximum(lam, 0.0))
+    lam = jnp.maximum(lam, 0.0)
+
+    def basis(scale, v):
+        return jnp.einsum("dkl,dl,bdl->bdk", vec, scale, jnp.einsum("dkl,bdk->bdl", vec, v))
+
+    levels = lt._levels(config)
+    w = u[None] + jnp.einsum("dkl,dl,dnl->ndk", vec, jnp.sqrt((n - 1) * (p + levels[0] ** 2)),
+                             vec)
+    uw = jnp.broadcast_to(u, w.shape)
+    for sigma, nxt in zip(levels[:-1], levels[1:]):
+        s = 1.0 / sigma ** 2
+        h_b, dh_b = sensor(uw)
+        c_b = cost(uw, h_b) + 0.5 * s * jnp.sum((uw - w) ** 2, -1)
+        for _ in range(config.iterations):
+            grad = uw * (1 + s) - w * s - jnp.einsum("dwk,bdw->bdk", zs, dh_b * rho * (yw - h_b))
+            trial = uw - basis(1.0 / (1.0 + s + lam), grad)
+            h_t, dh_t = sensor(trial)
+            c_t = cost(trial, h_t) + 0.5 * s * jnp.sum((trial - w) ** 2, -1)
+            keep = (c_t < c_b)[..., None]
+            uw, h_b, dh_b = (jnp.where(keep, trial, uw), jnp.where(keep, h_t, h_b),
+                             jnp.where(keep, dh_t, dh_b))
+            c_b = jnp.minimum(c_t, c_b)
+        mu = uw + basis(p, uw - w) * s
+        w = mu + basis(jnp.sqrt((p + nxt ** 2) / (p + sigma ** 2)), w - mu)
+    return mean + jnp.einsum("nik,ki->ni", w, z)
+
+
+CHUNKINGS = [dict(), dict(classes=4, members=3, chunk=2)]       # all at once; chunked
+
+
+@functools.partial(jax.jit, static_argnums=(2, 3, 4, 5))
+def _analysis(forecast, y, model, loc, config, plan):
+    return lt.transform_analysis(forecast, y, model, loc, config, plan=plan)
+
+
+@pytest.mark.parametrize("name, radius, every, missing", [
+    ("lorenz96_arctan", 1.0, 1, 0.2),      # window 3 < N: the null block
+    ("lorenz96", 4.0, 1, 0.2),            # window 15 >= N: all N eigenvectors
+    ("lorenz96", 3.0, 2, 0.2),            # every second site observed
+])
+def test_chunked_analysis_is_the_direct_one(x64, name, radius, every, missing):
+    """Classes, member groups and chunks of sites give the same analysis as all sites at once,
+    and both the direct formulas', to float64 round-off."""
+    d, n = 20, 12
+    kw = dict(dim=d, num_steps=2, burn_in=0)
+    if every > 1:
+        kw.update(sensor="every", obs_every=every)
+    model = csf_jax.problems.get(name, **kw)
+    sites = obs_sites(csf_jax.problems.config(name, **kw))
+    rng = np.random.default_rng(0)
+    forecast = jnp.asarray(1.0 + 2.0 * rng.standard_normal((n, d)))
+    y = np.asarray(model.observe(forecast[0])) + 0.3 * rng.standard_normal(len(sites))
+    y = jnp.asarray(np.where(rng.random(len(sites)) < missing, np.nan, y))
+    loc = csf_jax.ring_localization(d, sites)
+    config = lt.LocalTransformConfig(radius=radius, top_iterations=4, iterations=2,
+                                     reverse_steps=4)
+    want = np.asarray(_direct_analysis(forecast, y, model, loc, config))
+    for chunking in CHUNKINGS:
+        got = _analysis(forecast, y, model, loc, config, lt.transform_plan(d, radius, **chunking))
+        np.testing.assert_allclose(np.asarray(got), want, rtol=0, atol=1e-9,
+                                   err_msg=str(chunking))
+
+
+def test_two_observations_of_a_site_chunked(x64):
+    d, n = 10, 8
+    sites, _, model = _two_per_site_model(d)
+    loc = csf_jax.ring_localization(d, sites)
+    rng = np.random.default_rng(3)
+    forecast = jnp.asarray(rng.standard_normal((n, d)))
+    y = jnp.asarray(np.asarray(model.observe(forecast[1])) + 0.5 * rng.standard_normal(6))
+    config = lt.LocalTransformConfig(radius=1.5, top_iterations=3, reverse_steps=3)
+    want = np.asarray(_direct_analysis(forecast, y, model, loc, config))
+    for chunking in [dict(), dict(classes=2, members=4, chunk=2)]:
+        got = _analysis(forecast, y, model, loc, config,
+                        lt.transform_plan(d, 1.5, slots=2, **chunking))
+        np.testing.assert_allclose(np.asarray(got), want, rtol=0, atol=1e-9)
+
+
+def test_chunked_filter_is_the_unchunked_one(x64):
+    """The filter with ``chunk=4`` (classes of 4 sites, member groups) against the whole block."""
+    model = csf_jax.problems.get("lorenz96_arctan", dim=40, num_steps=4, burn_in=0)
+    _, obs = csf_jax.simulate(model, jax.random.key(0))
+    ens = model.initial_ensemble(jax.random.key(1), 12).astype(jnp.float64)
+    kw = dict(model=model, key=jax.random.key(2),
+              localization=csf_jax.ring_localization(40, range(40)),
+              config=lt.LocalTransformConfig(radius=1.0, inflation=1.2), return_ensembles=True)
+    whole = lt.local_transform_filter(obs.astype(jnp.float64), ens, **kw)
+    parts = lt.local_transform_filter(obs.astype(jnp.float64), ens, chunk=4, **kw)
+    assert lt.transform_plan(40, 1.0, chunk=4).classes == 4
+    np.testing.assert_allclose(np.asarray(parts.ensembles), np.asarray(whole.ensembles), rtol=0,
+                               atol=1e-8)
+
+
+def test_plans():
+    plan = lt.transform_plan(100000, 1.0)
+    assert (plan.classes, plan.states, plan.chunk, plan.left, plan.right) == (4, 1, 3125, 1, 1)
+    assert lt.member_group(plan, 20) == 5
+    whole = lt.transform_plan(4096, 1.0)
+    assert whole.classes == 1 and lt.member_group(whole, 20) == 20
+    assert lt.transform_plan(100000, 4.0).classes == 16        # the window's 15 sites
+    ring = lt.transform_plan(20, 6.0)                           # a window wider than the ring
+    assert (ring.left, ring.right, ring.span) == (9, 10, 20)
+    with pytest.raises(ValueError, match="members=3 does not divide the ensemble's N=20"):
+        lt.member_group(lt.transform_plan(40, 1.0, members=3), 20)
+    with pytest.raises(ValueError, match="not a multiple of the 3 devices"):
+        lt.transform_plan(40, 1.0, devices=3)
+    with pytest.raises(ValueError, match="chunk must be a positive int"):
+        lt.transform_plan(40, 1.0, chunk=0)
+    with pytest.raises(ValueError, match="7 classes do not fit"):
+        lt.transform_plan(40, 1.0, classes=7)
+    with pytest.raises(ValueError, match="the halo .7 sites on each side at radius 4. is wider "
+                                         "than a device's block .5 sites"):
+        lt.transform_plan(40, 4.0, devices=8)
 
 
 @pytest.mark.parametrize("dim,sites,radius", [(40, range(40), 4.0), (100, range(0, 100, 3), 2.5),
@@ -138,7 +338,7 @@ def test_jit_vmap_same_key_and_missing():
     loc = csf_jax.ring_localization(20, np.arange(20))
 
     def run(o, k):
-        return lt.local_transform_filter(o, ens, problem=model, key=k, localization=loc,
+        return lt.local_transform_filter(o, ens, model=model, key=k, localization=loc,
                                          check_finite=False).mean
 
     jitted = jax.jit(run)
@@ -155,15 +355,20 @@ def test_refuses_what_it_cannot_localise():
     _, obs = csf_jax.simulate(model, jax.random.key(0))
     ens = model.initial_ensemble(jax.random.key(1), 8)
     ring = csf_jax.ring_localization(12, np.arange(12))
-    kw = dict(problem=model, key=jax.random.key(2))
+    kw = dict(model=model, key=jax.random.key(2))
     mixing = model._replace(observe=lambda x: x + 0.5 * jnp.roll(x, 1))
     with pytest.raises(ValueError, match="not a point sensor"):
-        lt.local_transform_filter(obs, ens, localization=ring, **dict(kw, problem=mixing))
+        lt.local_transform_filter(obs, ens, localization=ring, **dict(kw, model=mixing))
     with pytest.raises(ValueError, match="ring of d=12"):
         lt.local_transform_filter(obs, ens, localization=csf_jax.ring_localization(11, range(12)),
                                   **kw)
     with pytest.raises(ValueError, match="inf"):
         lt.local_transform_filter(obs.at[0, 0].set(jnp.inf), ens, localization=ring, **kw)
+    with pytest.raises(TypeError, match="local_transform_filter: config must be a "
+                                        "LocalTransformConfig, got LETKFConfig"):
+        lt.local_transform_filter(obs, ens, localization=ring, config=csf_jax.LETKFConfig(), **kw)
+    with pytest.raises(ValueError, match="chunk must be a positive int"):
+        lt.local_transform_filter(obs, ens, localization=ring, chunk=0, **kw)
     with pytest.raises(ValueError, match="iterations"):
         lt.LocalTransformConfig(iterations=0)
     with pytest.raises(ValueError, match="radius"):

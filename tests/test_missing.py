@@ -78,12 +78,12 @@ def _rmse(mean, truth):
 
 
 FILTERS = {
-    "pf": lambda m: lambda o, e, k: csf_jax.particle_filter(o, e, problem=m, key=k),
-    "enkf": lambda m: lambda o, e, k: csf_jax.ensemble_kalman_filter(o, e, problem=m, key=k),
-    "csf": lambda m: lambda o, e, k: csf_jax.filter(None, o, e, problem=m, key=k,
+    "pf": lambda m: lambda o, e, k: csf_jax.particle_filter(o, e, model=m, key=k),
+    "enkf": lambda m: lambda o, e, k: csf_jax.ensemble_kalman_filter(o, e, model=m, key=k),
+    "csf": lambda m: lambda o, e, k: csf_jax.filter(None, o, e, model=m, key=k,
                                                     prior=csf_jax.gaussian_prior()),
     "sf": lambda m: lambda o, e, k: csf_jax.score_filter(
-        o, e, problem=m, key=k, config=csf_jax.SFConfig(train_steps=40, warmup_steps=300)),
+        o, e, model=m, key=k, config=csf_jax.SFConfig(train_steps=40, warmup_steps=300)),
 }
 
 
@@ -103,7 +103,7 @@ def test_every_filter_with_gaps_is_within_1_1x_of_kalman(name, full):
     model = to_model(lg)
     truth, obs = _gappy_runs(lg, 4)
     assert 0.3 < float(jnp.isnan(obs).mean()) < 0.6
-    kalman = jax.vmap(lambda o: csf_jax.kalman_filter(o, lg=lg))(obs)
+    kalman = jax.vmap(lambda o: csf_jax.kalman_filter(o, model=lg))(obs)
     ens = jax.vmap(lambda k: model.initial_ensemble(k, 500))(jax.random.split(jax.random.key(2), 4))
     result = jax.jit(jax.vmap(FILTERS[name](model)))(obs, ens, jax.random.split(jax.random.key(3), 4))
     assert bool(result.finite.all())
@@ -117,9 +117,9 @@ def test_an_unobserved_step_is_a_pure_forecast():
     model = to_model(lg)
     obs = jnp.full((3, 2), jnp.nan)
     ens = model.initial_ensemble(jax.random.key(0), 200)
-    pf = csf_jax.particle_filter(obs, ens, problem=model, key=jax.random.key(1))
+    pf = csf_jax.particle_filter(obs, ens, model=model, key=jax.random.key(1))
     np.testing.assert_allclose(pf.ess, 200.0, rtol=1e-5)
-    enkf = csf_jax.ensemble_kalman_filter(obs, ens, problem=model, key=jax.random.key(1),
+    enkf = csf_jax.ensemble_kalman_filter(obs, ens, model=model, key=jax.random.key(1),
                                           return_ensembles=True)
     forecast = csf_jax.propagate(model, jax.random.split(jax.random.split(jax.random.key(1), 3)[0])[0],
                                  ens)
@@ -167,21 +167,21 @@ def test_bad_inputs_around_missing_data():
     key = jax.random.key(1)
     for f in (csf_jax.particle_filter, csf_jax.ensemble_kalman_filter):
         with pytest.raises(ValueError, match="ensemble has 1 non-finite"):
-            f(obs, ens.at[3, 1].set(jnp.nan), problem=model, key=key)
+            f(obs, ens.at[3, 1].set(jnp.nan), model=model, key=key)
         with pytest.raises(ValueError, match="infinite"):
-            f(obs.at[2, 1].set(jnp.inf), ens, problem=model, key=key)
+            f(obs.at[2, 1].set(jnp.inf), ens, model=model, key=key)
     # a user noise without a marginal cannot leave entries out: refused concretely ...
     own = ObservationNoise("laplace", lambda r: -jnp.sum(jnp.abs(r)),
                            lambda k, s: jax.random.laplace(k, s), 1.4)
     bare = model._replace(obs_noise=own)
     with pytest.raises(ValueError, match="no marginal log-density"):
-        csf_jax.particle_filter(obs, ens, problem=bare, key=key)
+        csf_jax.particle_filter(obs, ens, model=bare, key=key)
     # ... and reported as non-finite from that step under jit
-    r = jax.jit(lambda o: csf_jax.particle_filter(o, ens, problem=bare, key=key,
+    r = jax.jit(lambda o: csf_jax.particle_filter(o, ens, model=bare, key=key,
                                                   check_finite=False))(obs)
     np.testing.assert_array_equal(r.finite, [True, False, False, False])
     # with complete observations it filters
-    assert bool(csf_jax.particle_filter(jnp.zeros((4, 2)), ens, problem=bare, key=key).finite.all())
+    assert bool(csf_jax.particle_filter(jnp.zeros((4, 2)), ens, model=bare, key=key).finite.all())
     with pytest.raises(ValueError, match="positive definite"):
         gaussian_noise_cov([[1.0, 2.0], [2.0, 1.0]])
     with pytest.raises(ValueError, match="symmetric"):

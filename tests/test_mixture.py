@@ -9,7 +9,7 @@ import pytest
 from conftest import make_linear_case
 
 import csf_jax
-from csf_jax import CSFConfig, MixtureConfig, mixture
+from csf_jax import CSFConfig, MixtureConfig, PriorConfig, mixture
 from csf_jax.problems.linear import linear_gaussian, to_model
 
 
@@ -107,7 +107,7 @@ def test_mixture_csf_tracks_kalman(x64):
     """``csf_jax.ROBUST`` (the mixture prior) on a linear-Gaussian model, N = 300: within a
     fraction of the Kalman std of the Kalman mean."""
     case = make_linear_case(2, 300, with_prior=True)
-    r = csf_jax.filter(None, case.obs, case.ensemble, problem=case.model, key=jax.random.key(5),
+    r = csf_jax.filter(None, case.obs, case.ensemble, model=case.model, key=jax.random.key(5),
                        config=csf_jax.ROBUST)
     print(case.errors(r.mean, r.std))
     err = case.errors(r.mean, r.std)
@@ -124,6 +124,145 @@ def test_bad_mixture_config_is_refused():
         with pytest.raises(ValueError, match="MixtureConfig"):
             MixtureConfig(**bad)
     with pytest.raises(TypeError, match="mixture"):
-        CSFConfig(mixture={"memory": 0.5})
-    assert CSFConfig().mixture is None and csf_jax.ROBUST.mixture == MixtureConfig()
-    assert not csf_jax.ROBUST.adaptive_inflation
+        CSFConfig(prior=PriorConfig(mixture={"memory": 0.5}))
+    assert CSFConfig().prior.mixture is None and csf_jax.ROBUST.prior.mixture == MixtureConfig()
+    assert not csf_jax.ROBUST.inflation.adaptive
+
+
+# --- steps without observations (an outage), divergence, refused combinations ----------------
+
+
+def _squared(x):
+    """Sites 0, 2, 4 of a 6-site ring seen through ``x^2``: a sensor blind to the sign."""
+    return x[::2] ** 2
+
+
+def _squared_lorenz96(num_steps: int):
+    """Lorenz-96, d = 6, F = 8, process noise std 0.3, ``y = x[::2]^2 + N(0, 1)``."""
+    from csf_jax.problems.lorenz96 import Lorenz96Config, lorenz96_problem
+
+    base = lorenz96_problem(Lorenz96Config(dim=6, sensor="every", obs_every=2,
+                                           num_steps=num_steps, burn_in=0, process_std=0.3))
+    return base._replace(name="lorenz96_d6_squared", observe=_squared)
+
+
+def _outage_runs(num_steps: int, outage: slice, n: int, seeds):
+    """ROBUST and the EnKF on one run of ``_squared_lorenz96`` per seed, every observation of
+    ``outage`` missing: RMSE against the truth per run ``(R,)`` of each, ROBUST's ``finite``
+    ``(R, K)`` and ``shock_weight`` ``(R, K)``, and the truth's spread (its std over all runs,
+    steps and sites). Concrete calls: a divergence would raise."""
+    model = _squared_lorenz96(num_steps)
+    out = {"robust": [], "enkf": [], "finite": [], "shock": [], "truth": []}
+    for seed in seeds:
+        k_sim, k_ens, k_filter = jax.random.split(jax.random.key(seed), 3)
+        truth, obs = csf_jax.simulate(model, k_sim)
+        obs = obs.at[outage].set(jnp.nan)
+        ens = model.initial_ensemble(k_ens, n)
+        robust = csf_jax.filter(None, obs, ens, model=model, key=k_filter, config=csf_jax.ROBUST)
+        enkf = csf_jax.ensemble_kalman_filter(obs, ens, model=model, key=k_filter)
+        for name, r in (("robust", robust), ("enkf", enkf)):
+            out[name].append(float(np.sqrt(np.mean((np.asarray(r.mean) - np.asarray(truth[1:]))
+                                                   ** 2))))
+        out["finite"].append(np.asarray(robust.finite))
+        out["shock"].append(np.asarray(robust.info["shock_weight"]))
+        out["truth"].append(np.asarray(truth))
+    return (np.array(out["robust"]), np.array(out["enkf"]), np.array(out["finite"]),
+            np.array(out["shock"]), float(np.std(out["truth"])))
+
+
+def test_a_step_without_observations_has_no_shock_components():
+    """The jump that wins the evidence when observed (``test_shock_component_takes_over``) is
+    absent when ``y`` is all missing or not assimilated (``guide`` 0): no shock member, a Bayes
+    factor of exactly 1, the step marked uninformed. Drawn there, a shock member sits up to 64
+    ensemble spreads off with nothing to refute it."""
+    model = csf_jax.problems.get("cubic10_indep", dim=3)
+    key = jax.random.key(0)
+    centers = 0.1 * jax.random.normal(key, (200, 3))
+    prior_ens = centers + 0.1 * jax.random.normal(jax.random.key(1), (200, 3))
+    cov = jnp.cov(prior_ens.T)
+    y = jnp.full((3,), 8.0)
+    select = jax.jit(lambda y, guide: mixture.select(model, MixtureConfig(), key, y, centers,
+                                                     prior_ens, cov, 0.0, 2.0, guide))
+    seen = select(y, 1.0)
+    assert float(seen.shock_weight) > 0.9 and bool(seen.informed)
+    for y_step, guide in ((jnp.full((3,), jnp.nan), 1.0), (y, 0.0)):
+        sel = select(y_step, guide)
+        assert float(sel.shock_weight) == 0.0 and int(jnp.sum(sel.kind > 1)) == 0
+        assert float(sel.log_bf) == 0.0 and not bool(sel.informed)
+        assert abs(float(sel.particle_weight) - float(jax.nn.sigmoid(2.0))) < 1e-6
+
+
+def test_memory_is_kept_through_steps_without_evidence():
+    cfg = MixtureConfig(memory=0.5, particle_logodds=1.0)
+    acc, odds = mixture.next_odds(cfg, 2.0, 0.0, informed=False)
+    assert float(acc) == 2.0 and float(odds) == 3.0
+    acc, _ = mixture.next_odds(cfg, 2.0, 0.0, informed=True)
+    assert float(acc) == 1.0
+
+
+def test_robust_filters_through_an_observation_outage():
+    """Lorenz-96 (d = 6) seen through ``x^2`` at every other site, all observations missing for
+    10 consecutive steps, N = 150, 4 runs. Shock members drawn on the blind steps, each up to 64
+    spreads off with nothing to refute it, grow the ensemble's covariance and with it the next
+    blind step's shock scales, to overflow (at N = 500 every run of this kind ended in NaN or an
+    RMSE of 1e8-1e15). Here: no shock weight on the blind steps, every run finite, each RMSE
+    below twice the truth's spread (a filter that lost the truth is near 1.4 of it) and the
+    median within 1.5x of the EnKF's."""
+    _check_outage(40, slice(15, 25), 150)
+
+
+@pytest.mark.slow
+def test_robust_filters_through_a_long_outage():
+    """As above with 30 blind steps of 80 and N = 200: the ensemble spreads over the attractor
+    and the filter must find the truth again from the returning observations."""
+    _check_outage(80, slice(25, 55), 200)
+
+
+def _check_outage(steps: int, blind: slice, particles: int) -> None:
+    """ROBUST over 4 runs with the ``blind`` steps unobserved: finite, no shock weight while
+    blind, each RMSE below twice the truth's spread, the median within 1.5x of the EnKF's."""
+    rmse, enkf, finite, shock, spread = _outage_runs(steps, blind, particles, range(4))
+    assert finite.all()
+    assert (shock[:, blind] == 0).all()
+    assert (rmse < 2 * spread).all(), (rmse, spread)
+    assert np.median(rmse) < 1.5 * np.median(enkf), (rmse, enkf)
+
+
+def _overflowing_model():
+    """1-D, ``x -> x`` below 5 and ``inf`` above: a drift that overflows where the filter should
+    not go; observed directly with noise 0.1."""
+    return csf_jax.StateSpaceModel(
+        "overflow_1d", 1, 1, 3, 1.0, lambda x: jnp.where(jnp.abs(x) < 5.0, x, jnp.inf),
+        lambda x: x, 0.1, csf_jax.gaussian_noise(0.1), lambda k: jnp.zeros(1),
+        lambda k, n: 0.1 * jax.random.normal(k, (n, 1)))
+
+
+def test_a_forecast_that_overflows_is_reported_even_when_resampled_away():
+    """One member's forecast is inf: the mixture gives its components no weight and the posterior
+    is finite, but the run has diverged: step 1 on is reported (NaN, ``finite`` False) and a
+    concrete call raises, with advice that names no setting to switch to."""
+    model = _overflowing_model()
+    ens = 0.1 * jax.random.normal(jax.random.key(0), (64, 1))
+    ens = ens.at[0].set(10.0)
+    obs = jnp.zeros((3, 1))
+    r = csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(1), config=csf_jax.ROBUST,
+                       check_finite=False, return_ensembles=True)
+    assert bool(jnp.isfinite(r.ensembles).all())
+    assert not bool(r.finite.any())
+    with pytest.raises(FloatingPointError, match="non-finite at step 1 of 3") as err:
+        csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(1), config=csf_jax.ROBUST)
+    assert "clipped" not in str(err.value) and "GuidanceConfig" not in str(err.value)
+
+
+def test_mixture_particles_without_a_process_noise_covariance_are_refused():
+    """The particle components need Q: a ``ProcessNoise`` without one is refused at the boundary
+    (it was dropped without a word), naming the fields and both ways out."""
+    base = _squared_lorenz96(5)
+    noise = csf_jax.ProcessNoise("sampler_only", lambda k, shape: 0.3 * jax.random.normal(k, shape))
+    model = base._replace(process_noise=noise)
+    truth, obs = csf_jax.simulate(model, jax.random.key(0))
+    ens = model.initial_ensemble(jax.random.key(1), 32)
+    with pytest.raises(ValueError, match=r"CSFConfig.prior.mixture.particles needs the process "
+                                         r"noise covariance Q.*'sampler_only'.*"
+                                         r"MixtureConfig\(particles=False\)"):
+        csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(2), config=csf_jax.ROBUST)

@@ -80,7 +80,7 @@ def test_filters_with_inputs_match_the_kalman_filter(method):
     u = _inputs()
     _, obs = csf_jax.simulate(model, jax.random.key(3), inputs=u)
     ens = model.initial_ensemble(jax.random.key(4), 400)
-    kw = dict(problem=model, key=jax.random.key(5), inputs=u)
+    kw = dict(model=model, key=jax.random.key(5), inputs=u)
     run = {"csf": lambda: csf_jax.filter(None, obs, ens, **kw),
            "csf_robust": lambda: csf_jax.filter(None, obs, ens, config=csf_jax.ROBUST, **kw),
            "pf": lambda: csf_jax.particle_filter(obs, ens, **kw),
@@ -100,12 +100,12 @@ def test_inputs_are_checked_at_the_boundary():
     _, obs = csf_jax.simulate(model, jax.random.key(0), inputs=u)
     ens = model.initial_ensemble(jax.random.key(1), 20)
     with pytest.raises(ValueError, match="leading axis"):
-        csf_jax.particle_filter(obs, ens, problem=model, key=jax.random.key(0), inputs=u[:-1])
+        csf_jax.particle_filter(obs, ens, model=model, key=jax.random.key(0), inputs=u[:-1])
     fixed = problems.get("pendulum")
     _, obs_f = csf_jax.simulate(fixed, jax.random.key(0))
     ens_f = fixed.initial_ensemble(jax.random.key(1), 20)
     with pytest.raises(ValueError, match="not time-varying"):
-        csf_jax.filter(None, obs_f, ens_f, problem=fixed, key=jax.random.key(0),
+        csf_jax.filter(None, obs_f, ens_f, model=fixed, key=jax.random.key(0),
                        inputs=jnp.zeros((obs_f.shape[0], 1)))
     with pytest.raises(ValueError, match="not time-varying"):
         csf_jax.simulate(fixed, jax.random.key(0), inputs=jnp.zeros((5, 1)))
@@ -151,7 +151,7 @@ def test_poisson_likelihood_filters_match_a_grid_filter():
     obs = obs.at[jnp.array([4, 11])].set(jnp.nan)
     exact = grid_filter(model, obs, np.linspace(-6, 6, 2401), 0.8)
     ens = model.initial_ensemble(jax.random.key(3), 500)
-    kw = dict(problem=model, key=jax.random.key(4))
+    kw = dict(model=model, key=jax.random.key(4))
     err = {}
     for name, fn in (("csf", lambda: csf_jax.filter(None, obs, ens, **kw)),
                      ("csf_robust", lambda: csf_jax.filter(None, obs, ens, config=csf_jax.ROBUST,
@@ -170,13 +170,13 @@ def test_a_likelihood_without_a_gaussian_standin_is_refused_by_kalman_type_filte
     _, obs = csf_jax.simulate(model, jax.random.key(0))
     ens = model.initial_ensemble(jax.random.key(1), 50)
     with pytest.raises(ValueError, match="Gaussian stand-in"):
-        csf_jax.ensemble_kalman_filter(obs, ens, problem=model, key=jax.random.key(0))
+        csf_jax.ensemble_kalman_filter(obs, ens, model=model, key=jax.random.key(0))
     with pytest.raises(ValueError, match="Gaussian stand-in"):
-        csf_jax.letkf(obs, ens, problem=model, key=jax.random.key(0),
+        csf_jax.letkf(obs, ens, model=model, key=jax.random.key(0),
                       localization=csf_jax.ring_localization(1, [0]))
     with pytest.raises(ValueError, match="Gaussian stand-in"):  # the adaptive inflation's
-        csf_jax.filter(None, obs, ens, problem=model, key=jax.random.key(0))
-    result = csf_jax.filter(None, obs, ens, problem=model, key=jax.random.key(0),
+        csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(0))
+    result = csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(0),
                             config=csf_jax.ROBUST)
     assert bool(jnp.isfinite(result.mean).all())
 
@@ -184,10 +184,10 @@ def test_a_likelihood_without_a_gaussian_standin_is_refused_by_kalman_type_filte
 def test_kalman_filter_takes_only_a_linear_state_space_model():
     lg = linear_gaussian(2, 2)
     from csf_jax.problems.linear import to_model
-    np.testing.assert_array_equal(csf_jax.kalman_filter(jnp.zeros((3, 2)), lg=to_model(lg)).mean,
-                                  csf_jax.kalman_filter(jnp.zeros((3, 2)), lg=lg).mean)
+    np.testing.assert_array_equal(csf_jax.kalman_filter(jnp.zeros((3, 2)), model=to_model(lg)).mean,
+                                  csf_jax.kalman_filter(jnp.zeros((3, 2)), model=lg).mean)
     with pytest.raises(TypeError, match="LinearGaussian"):
-        csf_jax.kalman_filter(jnp.zeros((3, 1)), lg=problems.get("pendulum"))
+        csf_jax.kalman_filter(jnp.zeros((3, 1)), model=problems.get("pendulum"))
 
 
 def test_driver_reports_progress_once_per_step():
@@ -195,10 +195,32 @@ def test_driver_reports_progress_once_per_step():
     _, obs = csf_jax.simulate(model, jax.random.key(0))
     ens = model.initial_ensemble(jax.random.key(1), 64)
     seen = []
-    csf_jax.particle_filter(obs, ens, problem=model, key=jax.random.key(2),
+    csf_jax.particle_filter(obs, ens, model=model, key=jax.random.key(2),
                             progress=lambda k: seen.append(int(k)))
     jax.effects_barrier()
     assert sorted(seen) == list(range(8))
+
+
+def test_info_holds_what_the_result_docstring_lists():
+    """``FilterResult.info`` per filter, as its docstring lists it: the particle filter's ESS in
+    ``ess`` (info None); the Kalman filter's covariances only from ``kalman_filter_cov``; the EnKF
+    and the default CSF report none. (CSF's mixture weights: the slow test below.)"""
+    from csf_jax.filters.kalman import kalman_filter_cov
+    from csf_jax.problems.linear import to_model
+    lg = linear_gaussian(2, 1, num_steps=3)
+    model = to_model(lg)
+    obs = jnp.zeros((3, 1))
+    ens = model.initial_ensemble(jax.random.key(1), 16)
+    key = jax.random.key(2)
+    pf = csf_jax.particle_filter(obs, ens, model=model, key=key)
+    assert pf.info is None and pf.ess.shape == (3,)
+    for result in (csf_jax.kalman_filter(obs, model=lg),
+                   csf_jax.run(csf_jax.methods.kalman(), obs, None, model=lg, key=key),
+                   csf_jax.ensemble_kalman_filter(obs, ens, model=model, key=key),
+                   csf_jax.filter(None, obs, ens, model=model, key=key, config=csf_jax.CSFConfig(
+                       sampler=csf_jax.SamplerConfig(reverse_steps=2)))):
+        assert result.info is None and result.ess is None
+    assert kalman_filter_cov(obs, lg)[1].shape == (3, 2, 2)
 
 
 @pytest.mark.slow
@@ -206,7 +228,7 @@ def test_robust_csf_reports_its_mixture_weights_and_is_reproducible():
     model = problems.get("pendulum", num_steps=8)
     _, obs = csf_jax.simulate(model, jax.random.key(0))
     ens = model.initial_ensemble(jax.random.key(1), 64)
-    run = lambda: csf_jax.filter(None, obs, ens, problem=model, key=jax.random.key(2),
+    run = lambda: csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(2),
                                  config=csf_jax.ROBUST)
     result = run()
     assert set(result.info) == {"particle_weight", "shock_weight"}
@@ -237,6 +259,6 @@ def test_zoo_models_filter(name):
     ens = model.initial_ensemble(jax.random.key(1), 32)
     prior = None if model.process_noise is None else csf_jax.gaussian_prior()
     for config in (csf_jax.CSFConfig(), csf_jax.ROBUST):
-        result = csf_jax.filter(None, obs, ens, problem=model, key=jax.random.key(2),
+        result = csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(2),
                                 config=config, prior=prior)
         assert result.mean.shape == (5, model.dim) and bool(jnp.isfinite(result.mean).all())

@@ -13,6 +13,9 @@ import pytest
 from csf_jax import networks
 from csf_jax.networks import NetworkConfig, ScoreNet, SetEncoder, init_params
 
+# compared against closed forms at full float32 precision (on GPUs the default is TF32)
+pytestmark = pytest.mark.usefixtures("highest_precision")
+
 DIM = 3
 N = 50
 CONFIG = NetworkConfig()

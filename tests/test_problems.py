@@ -95,7 +95,7 @@ def test_pf_loses_track_after_shocks():
     keys = jax.random.split(jax.random.key(0), 10)
     truth, obs = jax.vmap(lambda k: csf_jax.simulate(model, k))(keys)
     ens = jax.vmap(lambda k: model.initial_ensemble(k, 1000))(keys)
-    pf = jax.vmap(lambda o, e, k: csf_jax.particle_filter(o, e, problem=model, key=k))(
+    pf = jax.vmap(lambda o, e, k: csf_jax.particle_filter(o, e, model=model, key=k))(
         obs, ens, keys)
     # Lost: the last 10 steps' mean error exceeds 1 (the wells are 2 apart).
     final_err = jnp.abs(pf.mean[:, -10:, 0] - truth[:, -10:, 0]).mean(axis=1)
@@ -122,11 +122,11 @@ def test_user_defined_problem_runs_everywhere():
     truth, obs = csf_jax.simulate(model, jax.random.key(0))
     assert truth.shape == (51, 2) and obs.shape == (50, 1)
     ens = model.initial_ensemble(jax.random.key(1), 64)
-    for run in (lambda: csf_jax.particle_filter(obs, ens, problem=model, key=jax.random.key(2)),
-                lambda: csf_jax.ensemble_kalman_filter(obs, ens, problem=model,
+    for run in (lambda: csf_jax.particle_filter(obs, ens, model=model, key=jax.random.key(2)),
+                lambda: csf_jax.ensemble_kalman_filter(obs, ens, model=model,
                                                        key=jax.random.key(2)),
-                lambda: csf_jax.filter(None, obs, ens, problem=model, key=jax.random.key(2),
-                                       config=csf_jax.CSFConfig(reverse_steps=100))):
+                lambda: csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(2),
+                                       config=csf_jax.CSFConfig(sampler=csf_jax.SamplerConfig(reverse_steps=100)))):
         r = run()
         assert r.mean.shape == (50, 2)
         assert float(csf_jax.rmse(r.mean, truth[1:])) < 1.0

@@ -21,14 +21,14 @@ def test_matches_kalman_on_a_separable_linear_gaussian_model(x64):
     lg = linear_gaussian(dim=3, A=np.diag([0.9, 0.7, -0.5]), H=np.eye(3), num_steps=30)
     model = to_model(lg)
     obs = jnp.asarray(simulate_linear(lg, 3))
-    kf = kalman_filter(obs, lg=lg)
+    kf = kalman_filter(obs, model=lg)
     init = model.initial_ensemble(jax.random.key(1), 20000)
-    r = csf_jax.reference_filter(obs, init, problem=model, key=jax.random.key(2))
+    r = csf_jax.reference_filter(obs, init, model=model, key=jax.random.key(2))
     z = (r.mean - kf.mean) / kf.std
     s = r.std / kf.std - 1.0
     assert float(jnp.sqrt(jnp.mean(z ** 2))) < 0.05 and float(jnp.abs(z).max()) < 0.2
     assert float(jnp.sqrt(jnp.mean(s ** 2))) < 0.05
-    blind = csf_jax.reference_filter(obs * 0.0, init, problem=model, key=jax.random.key(2))
+    blind = csf_jax.reference_filter(obs * 0.0, init, model=model, key=jax.random.key(2))
     assert float(jnp.sqrt(jnp.mean(((blind.mean - kf.mean) / kf.std) ** 2))) > 1.0
 
 
@@ -38,10 +38,10 @@ def test_same_key_same_result_and_vmap():
     _, obs = csf_jax.simulate(model, jax.random.key(0))
     init = model.initial_ensemble(jax.random.key(1), 500)
     cfg = ReferenceConfig(particles=500, shock_draws=64)
-    a = csf_jax.reference_filter(obs, init, problem=model, key=jax.random.key(3), config=cfg)
-    b = csf_jax.reference_filter(obs, init, problem=model, key=jax.random.key(3), config=cfg)
+    a = csf_jax.reference_filter(obs, init, model=model, key=jax.random.key(3), config=cfg)
+    b = csf_jax.reference_filter(obs, init, model=model, key=jax.random.key(3), config=cfg)
     np.testing.assert_array_equal(a.mean, b.mean)
-    many = jax.vmap(lambda o, k: csf_jax.reference_filter(o, init, problem=model, key=k, config=cfg,
+    many = jax.vmap(lambda o, k: csf_jax.reference_filter(o, init, model=model, key=k, config=cfg,
                                                           check_finite=False).mean)(
         jnp.stack([obs, obs]), jax.random.split(jax.random.key(3), 2))
     assert many.shape == (2, 6, model.dim) and np.all(np.isfinite(many))
@@ -56,7 +56,7 @@ def test_modelled_shocks_follow_the_double_well_reflection():
     rmse = {}
     for on in (True, False):
         cfg = ReferenceConfig(particles=5000, model_shocks=on, shock_draws=512)
-        r = csf_jax.reference_filter(obs, init, problem=model, key=jax.random.key(2), config=cfg)
+        r = csf_jax.reference_filter(obs, init, model=model, key=jax.random.key(2), config=cfg)
         rmse[on] = float(jnp.sqrt(jnp.mean(jnp.sum((r.mean - truth[1:]) ** 2, -1))))
     assert rmse[True] < 0.06 and rmse[False] > 0.3, rmse
 
@@ -75,7 +75,7 @@ def test_refuses_observations_that_mix_coordinates():
     lg = linear_gaussian(dim=2, obs_dim=1)
     model = to_model(lg)
     with pytest.raises(ValueError, match="obs_dim == dim"):
-        csf_jax.reference_filter(jnp.zeros((3, 1)), jnp.zeros((10, 2)), problem=model,
+        csf_jax.reference_filter(jnp.zeros((3, 1)), jnp.zeros((10, 2)), model=model,
                                  key=jax.random.key(0))
 
 
@@ -83,10 +83,10 @@ def test_refuses_bad_inputs():
     model = problems.get("cubic10_indep", num_steps=3)
     good = jnp.zeros((3, 10))
     with pytest.raises(ValueError):
-        csf_jax.reference_filter(good, jnp.zeros((10, 9)), problem=model, key=jax.random.key(0))
+        csf_jax.reference_filter(good, jnp.zeros((10, 9)), model=model, key=jax.random.key(0))
     with pytest.raises(ValueError):
-        csf_jax.reference_filter(good.at[0, 0].set(jnp.inf), jnp.zeros((10, 10)), problem=model,
+        csf_jax.reference_filter(good.at[0, 0].set(jnp.inf), jnp.zeros((10, 10)), model=model,
                                  key=jax.random.key(0))
     with pytest.raises(ValueError, match="particles >= 2"):
-        csf_jax.reference_filter(good, jnp.zeros((10, 10)), problem=model, key=jax.random.key(0),
+        csf_jax.reference_filter(good, jnp.zeros((10, 10)), model=model, key=jax.random.key(0),
                                  config=ReferenceConfig(particles=1))

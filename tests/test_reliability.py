@@ -18,7 +18,7 @@ import pytest
 import csf_jax
 from csf_jax import networks, problems
 from csf_jax import trained as trained_mod
-from csf_jax.pretrained import MODEL_DIR, Pretrained, load_dir, load_pretrained
+from csf_jax.pretrained import MODEL_DIR, load_dir, load_pretrained
 from csf_jax.training import DatasetConfig, TrainConfig, generate, load, train
 
 TINY_DATA = DatasetConfig(trajectories=12, particles=200, keep=64, chunk=6)
@@ -183,7 +183,7 @@ def _edit_meta_network(directory: str, **extra) -> None:
 
 # --- a trained prior carries its problem and network; filter refuses a mismatch ----------------
 
-SAMPLER = csf_jax.CSFConfig(reverse_steps=10)
+SAMPLER = csf_jax.CSFConfig(sampler=csf_jax.SamplerConfig(reverse_steps=10))
 
 
 def _data(name: str, particles: int = 16, steps: int = 3):
@@ -196,8 +196,8 @@ def test_trained_prior_of_another_problem_with_the_same_shapes_is_refused():
     model, obs, ens = _data("cubic10_indep")
     corr = load_pretrained("cubic10_corr")
     with pytest.raises(ValueError, match="made for problem 'cubic10_corr' .*but "
-                                         "problem='cubic10_indep'") as error:
-        csf_jax.filter(corr, obs, ens, problem=model, key=jax.random.key(2), config=SAMPLER)
+                                         "model='cubic10_indep'") as error:
+        csf_jax.filter(corr, obs, ens, model=model, key=jax.random.key(2), config=SAMPLER)
     _one_line(error)
     # triple_well's model is the double-well one, on purpose: load_pretrained says so
     triple = problems.get("triple_well")
@@ -212,89 +212,46 @@ def test_network_differing_from_the_trained_one_is_refused(field, value):
     trained = load_pretrained("double_well")
     other = dataclasses.replace(trained.network, **{field: value})
     with pytest.raises(ValueError, match=f"network= differs .*{field}: given {value}, trained"):
-        csf_jax.filter(trained, obs, ens, problem=model, network=other, key=jax.random.key(2),
+        csf_jax.filter(trained, obs, ens, model=model, network=other, key=jax.random.key(2),
                        config=SAMPLER)
 
 
 def test_sampler_sigma_max_differing_from_the_network_is_refused():
     model, obs, ens = _data("double_well")
     trained = load_pretrained("double_well")
-    config = dataclasses.replace(SAMPLER, sigma_max=30.0)
+    config = dataclasses.replace(SAMPLER, sampler=dataclasses.replace(SAMPLER.sampler, sigma_max=30.0))
     for params, network in ((trained, None), (trained.params, trained.network)):
         with pytest.raises(ValueError, match="sigma_max=25.0, but the sampler's "
-                                             "config.sigma_max=30.0"):
-            csf_jax.filter(params, obs, ens, problem=model, network=network,
+                                             "config.sampler.sigma_max=30.0"):
+            csf_jax.filter(params, obs, ens, model=model, network=network,
                            key=jax.random.key(2), config=config)
 
 
 def test_trained_prior_works_under_jit_and_vmap_like_raw_params():
     model, obs, ens = _data("double_well")
     trained = load_pretrained("double_well")
-    raw = csf_jax.filter(trained.params, obs, ens, problem=model, network=trained.network,
+    raw = csf_jax.filter(trained.params, obs, ens, model=model, network=trained.network,
                          key=jax.random.key(2), config=SAMPLER)
-    jitted = jax.jit(functools.partial(csf_jax.filter, problem=model, config=SAMPLER))
+    jitted = jax.jit(functools.partial(csf_jax.filter, model=model, config=SAMPLER))
     got = jitted(trained, obs, ens, key=jax.random.key(2))
     np.testing.assert_allclose(got.mean, raw.mean, rtol=1e-5, atol=1e-6)
     assert jax.tree_util.tree_leaves(trained) == jax.tree_util.tree_leaves(trained.params)
     keys = jax.random.split(jax.random.key(3), 2)
-    batched = jax.vmap(lambda k: csf_jax.filter(trained, obs, ens, problem=model, key=k,
+    batched = jax.vmap(lambda k: csf_jax.filter(trained, obs, ens, model=model, key=k,
                                                 config=SAMPLER))(keys)
     assert batched.mean.shape == (2,) + raw.mean.shape and bool(batched.finite.all())
-    assert isinstance(trained, Pretrained) and trained.problem == "double_well"
+    assert isinstance(trained, csf_jax.TrainedPrior) and trained.problem == "double_well"
 
 
-# --- command lines: every bad value is argparse's one-line error --------------------------------
-
-
-def _cli_error(main, argv, capsys) -> str:
-    with pytest.raises(SystemExit) as exit_:
-        main(argv)
-    assert exit_.value.code == 2
-    return capsys.readouterr().err.strip().splitlines()[-1]
-
-
-@pytest.mark.parametrize("argv,flag", [
-    (["--runs", "0"], "--runs"), (["--runs", "-1"], "--runs"), (["--particles", "0"], "--particles"),
-    (["--particles", "1"], "--particles"), (["--batch", "0"], "--batch"), (["--steps", "1"], "--steps"),
-    (["--seed", "-1"], "--seed"), (["--sf-runs", "0"], "--sf-runs"), (["--runs", "x"], "--runs"),
-    (["--methods", "csf,kalman"], "--methods"), (["--methods", ","], "--methods"),
-    (["--runs", "2", "--sf-runs", "3"], "--sf-runs"), (["--out", "README.md"], "--out"),
-    (["--guidance", "fast"], "--guidance"),
-])
-def test_run_cli_refuses_bad_values(argv, flag, capsys):
-    from experiments import run
-    line = _cli_error(run.main, ["double_well"] + argv, capsys)
-    assert line.startswith(f"python -m experiments.run: error: argument {flag}: "), line
-
-
-@pytest.mark.parametrize("module,argv,flag", [
-    ("train", ["double_well", "--steps", "0"], "--steps"),
-    ("train", ["double_well", "--save-every", "-5"], "--save-every"),
-    ("train", ["double_well", "--set-sizes", "1,8"], "--set-sizes"),
-    ("train", ["double_well", "--trajectories", "1"], "--trajectories"),
-    ("table", ["--runs", "0"], "--runs"),
-    ("table", ["--problems", "double_well,nowhere"], "--problems"),
-    ("prior_quality", ["cauchy", "--ensembles", "0"], "--ensembles"),
-    ("guidance_study", ["--particles", "1"], "--particles"),
-    ("table", ["--guidance", "fast"], "--guidance"),
-    ("posterior_quality", ["--trials", "0"], "--trials"),
-    ("posterior_quality", ["--samplers", "kalman:1"], "--samplers"),
-    ("posterior_quality", ["--samplers", "euler:50"], "--samplers"),
-    ("posterior_quality", ["--cases", "linear d10 narrow,nowhere"], "--cases"),
-])
-def test_other_clis_refuse_bad_values(module, argv, flag, capsys):
+@pytest.mark.parametrize("module", ["csf_jax", "csf_jax.trained", "csf_jax.pretrained"])
+def test_pretrained_is_a_deprecated_name_of_trained_prior(module):
     import importlib
-    main = importlib.import_module(f"experiments.{module}").main
-    line = _cli_error(main, argv, capsys)
-    assert f"error: argument {flag}: " in line, line
-
-
-def test_bench_cli_refuses_bad_values(capsys):
-    from experiments import bench
-    for argv, flag in ((["--dims", "0"], "--dims"), (["--shards", "0"], "--shards"),
-                       (["--repeats", "0"], "--repeats")):
-        line = _cli_error(bench.parse_args, argv, capsys)
-        assert f"error: argument {flag}: " in line, line
+    with pytest.warns(DeprecationWarning, match=rf"{module}\.Pretrained is deprecated: it is "
+                                                r"csf_jax\.TrainedPrior"):
+        assert importlib.import_module(module).Pretrained is csf_jax.TrainedPrior
+    assert "Pretrained" not in csf_jax.__all__
+    with pytest.raises(AttributeError, match="has no attribute 'Pretrainde'"):
+        csf_jax.Pretrainde  # noqa: B018
 
 
 # --- dtypes: obs and ensemble are promoted to their common float dtype in every filter ----------
@@ -302,14 +259,14 @@ def test_bench_cli_refuses_bad_values(capsys):
 TINY_SF = csf_jax.SFConfig(train_steps=2, warmup_steps=0, batch=16, network=SMALL_NET)
 
 FILTERS = {
-    "csf": lambda o, e, m: csf_jax.filter(None, o, e, problem=m, key=jax.random.key(2),
+    "csf": lambda o, e, m: csf_jax.filter(None, o, e, model=m, key=jax.random.key(2),
                                           config=SAMPLER),
-    "csf_learned": lambda o, e, m: csf_jax.filter(load_pretrained("double_well"), o, e, problem=m,
+    "csf_learned": lambda o, e, m: csf_jax.filter(load_pretrained("double_well"), o, e, model=m,
                                                   key=jax.random.key(2), config=SAMPLER),
-    "sf": lambda o, e, m: csf_jax.score_filter(o, e, problem=m, key=jax.random.key(2),
+    "sf": lambda o, e, m: csf_jax.score_filter(o, e, model=m, key=jax.random.key(2),
                                                config=TINY_SF, sampler=SAMPLER),
-    "pf": lambda o, e, m: csf_jax.particle_filter(o, e, problem=m, key=jax.random.key(2)),
-    "enkf": lambda o, e, m: csf_jax.ensemble_kalman_filter(o, e, problem=m,
+    "pf": lambda o, e, m: csf_jax.particle_filter(o, e, model=m, key=jax.random.key(2)),
+    "enkf": lambda o, e, m: csf_jax.ensemble_kalman_filter(o, e, model=m,
                                                            key=jax.random.key(2)),
 }
 
@@ -362,10 +319,10 @@ def test_kalman_and_concrete_calls():
     from csf_jax.problems.linear import linear_gaussian
     lg = linear_gaussian(dim=2, obs_dim=1, num_steps=4)
     obs = jnp.ones((4, 1)).at[1, 0].set(jnp.inf)
-    r = jax.jit(lambda o: csf_jax.kalman_filter(o, lg=lg))(obs)
+    r = jax.jit(lambda o: csf_jax.kalman_filter(o, model=lg))(obs)
     np.testing.assert_array_equal(r.finite, [True, False, False, False])
     model, good, ens = _data("double_well")
     with pytest.raises(ValueError, match="obs has 1 infinite value"):
-        csf_jax.particle_filter(good.at[0, 0].set(jnp.inf), ens, problem=model,
+        csf_jax.particle_filter(good.at[0, 0].set(jnp.inf), ens, model=model,
                                 key=jax.random.key(2))
     assert csf_jax.FilterResult(jnp.zeros((2, 1)), jnp.zeros((2, 1))).finite is None

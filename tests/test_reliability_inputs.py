@@ -220,17 +220,17 @@ def _double_well(particles=16, steps=2):
 def test_a_trained_prior_with_another_prior_is_refused(shipped):
     model, obs, ens = _double_well()
     with pytest.raises(ValueError, match="both a trained prior .* prior='gaussian'"):
-        csf_jax.filter(shipped, obs, ens, problem=model, key=KEY,
+        csf_jax.filter(shipped, obs, ens, model=model, key=KEY,
                        prior=csf_jax.gaussian_prior())
     learned = csf_jax.learned_prior(NET, 16)
     with pytest.raises(ValueError, match="both a TrainedPrior and prior= given"):
-        csf_jax.filter(shipped, obs, ens, problem=model, key=KEY, prior=learned)
+        csf_jax.filter(shipped, obs, ens, model=model, key=KEY, prior=learned)
 
 
 def test_raw_params_without_their_network_are_refused(shipped):
     model, obs, ens = _double_well()
     with pytest.raises(ValueError, match="raw params need network=") as caught:
-        csf_jax.filter(shipped.params, obs, ens, problem=model, key=KEY)
+        csf_jax.filter(shipped.params, obs, ens, model=model, key=KEY)
     _one_line(caught)
 
 
@@ -286,7 +286,7 @@ def test_localization_out_of_the_sensors_order_is_refused(filt):
     kw = dict(config=LOCAL) if filt == "local_filter" else {}
     with pytest.raises(ValueError, match=f"{filt}: observation 0 reads state site 0 .* places it "
                                          f"at 11") as caught:
-        getattr(csf_jax, filt)(obs, ens, problem=model, key=KEY, localization=loc, **kw)
+        getattr(csf_jax, filt)(obs, ens, model=model, key=KEY, localization=loc, **kw)
     _one_line(caught)
 
 
@@ -296,7 +296,7 @@ def test_lorenz96_filters_refuse_one_particle_and_bad_sites(filt):
     kw = dict(config=LOCAL) if filt == "local_filter" else {}
     ring = csf_jax.ring_localization(12, np.arange(12))
     with pytest.raises(ValueError, match="at least 2 particles"):
-        getattr(csf_jax, filt)(obs, ens[:1], problem=model, key=KEY, localization=ring, **kw)
+        getattr(csf_jax, filt)(obs, ens[:1], model=model, key=KEY, localization=ring, **kw)
     with pytest.raises(ValueError, match="obs_sites must be a 1-D sequence"):
         csf_jax.ring_localization(12, [[0, 1]])
     with pytest.raises(ValueError, match="ring_localization: dim must be a positive int"):
@@ -321,10 +321,10 @@ def test_drop_observations_at_rate_1_drops_everything():
 NEARLY_SINGULAR = [[1.0, 1.0 - 1e-9], [1.0 - 1e-9, 1.0]]
 
 FILTERS = {
-    "enkf": lambda o, e, m: csf_jax.ensemble_kalman_filter(o, e, problem=m, key=KEY),
-    "pf": lambda o, e, m: csf_jax.particle_filter(o, e, problem=m, key=KEY),
-    "csf": lambda o, e, m: csf_jax.filter(None, o, e, problem=m, key=KEY,
-                                          config=csf_jax.CSFConfig(reverse_steps=2)),
+    "enkf": lambda o, e, m: csf_jax.ensemble_kalman_filter(o, e, model=m, key=KEY),
+    "pf": lambda o, e, m: csf_jax.particle_filter(o, e, model=m, key=KEY),
+    "csf": lambda o, e, m: csf_jax.filter(None, o, e, model=m, key=KEY,
+                                          config=csf_jax.CSFConfig(sampler=csf_jax.SamplerConfig(reverse_steps=2))),
 }
 
 
@@ -368,9 +368,9 @@ def test_a_covariance_of_the_wrong_size_is_refused(which, noise, message, call):
 def test_half_precision_inputs_run_in_float32(filt):
     model, obs, ens = _lorenz96()
     ring = csf_jax.ring_localization(12, np.arange(12))
-    run = {"enkf": lambda o, e: csf_jax.ensemble_kalman_filter(o, e, problem=model, key=KEY),
-           "letkf": lambda o, e: csf_jax.letkf(o, e, problem=model, key=KEY, localization=ring),
-           "local_filter": lambda o, e: csf_jax.local_filter(o, e, problem=model, key=KEY,
+    run = {"enkf": lambda o, e: csf_jax.ensemble_kalman_filter(o, e, model=model, key=KEY),
+           "letkf": lambda o, e: csf_jax.letkf(o, e, model=model, key=KEY, localization=ring),
+           "local_filter": lambda o, e: csf_jax.local_filter(o, e, model=model, key=KEY,
                                                              localization=ring, config=LOCAL)}
     result = run[filt](obs.astype(jnp.float16), ens.astype(jnp.float16))
     assert result.mean.dtype == jnp.float32 and bool(result.finite.all())
@@ -385,9 +385,9 @@ def test_half_precision_inputs_run_in_float32(filt):
     (lambda: csf_jax.LETKFConfig(inflation=float("nan")), "LETKFConfig.inflation must be a finite"),
     (lambda: csf_jax.LETKFConfig(radius=-1.0), "LETKFConfig.radius must be > 0"),
     (lambda: csf_jax.LocalCSFConfig(ridge="0.1"), "LocalCSFConfig.ridge must be a finite number"),
-    (lambda: csf_jax.CSFConfig(assimilate_first="yes"),
-     "CSFConfig.assimilate_first must be a bool"),
-    (lambda: csf_jax.CSFConfig(t_min=None), "CSFConfig.t_min must be a finite number"),
+    (lambda: csf_jax.CSFConfig(sampler=csf_jax.SamplerConfig(assimilate_first="yes")),
+     "SamplerConfig.assimilate_first must be a bool"),
+    (lambda: csf_jax.CSFConfig(sampler=csf_jax.SamplerConfig(t_min=None)), "SamplerConfig.t_min must be a finite number"),
     (lambda: csf_jax.GuidanceConfig(scale="1"), "GuidanceConfig.scale must be a finite number"),
     (lambda: csf_jax.MixtureConfig(particles=1), "MixtureConfig.particles must be a bool"),
     (lambda: csf_jax.NetworkConfig(base=None), "NetworkConfig.base must be a str"),
@@ -396,7 +396,7 @@ def test_half_precision_inputs_run_in_float32(filt):
     (lambda: csf_jax.DatasetConfig(keep=8.0), "DatasetConfig.keep must be an int"),
     (lambda: csf_jax.SFConfig(lr=float("inf")), "SFConfig.lr must be a finite number"),
     (lambda: csf_jax.SFConfig(network=None), "SFConfig.network must be a NetworkConfig"),
-    (lambda: csf_jax.CSFConfig(guidance="kalman"), "CSFConfig.guidance must be a GuidanceConfig"),
+    (lambda: csf_jax.CSFConfig(sampler=csf_jax.SamplerConfig(guidance="kalman")), "SamplerConfig.guidance must be a GuidanceConfig"),
 ])
 def test_config_fields_of_the_wrong_type_are_refused_by_name(make, message):
     with pytest.raises((TypeError, ValueError), match=message) as caught:
@@ -410,13 +410,13 @@ def test_config_fields_of_the_wrong_type_are_refused_by_name(make, message):
 def test_kalman_filter_takes_the_linear_model_or_its_state_space_model():
     lg = linear_gaussian(2, 1, num_steps=3)
     obs = jnp.ones((3, 1))
-    np.testing.assert_array_equal(csf_jax.kalman_filter(obs, lg=to_model(lg)).mean,
-                                  csf_jax.kalman_filter(obs, lg=lg).mean)
-    with pytest.raises(TypeError, match="lg must be a LinearGaussian .* got NoneType"):
-        csf_jax.kalman_filter(obs, lg=None)
-    with pytest.raises(TypeError, match="lg='pendulum' is a StateSpaceModel not made by "
+    np.testing.assert_array_equal(csf_jax.kalman_filter(obs, model=to_model(lg)).mean,
+                                  csf_jax.kalman_filter(obs, model=lg).mean)
+    with pytest.raises(TypeError, match="model must be a LinearGaussian .* got NoneType"):
+        csf_jax.kalman_filter(obs, model=None)
+    with pytest.raises(TypeError, match="model='pendulum' is a StateSpaceModel not made by "
                                         "to_model"):
-        csf_jax.kalman_filter(obs, lg=problems.get("pendulum"))
+        csf_jax.kalman_filter(obs, model=problems.get("pendulum"))
 
 
 # --- 18: a damaged parameter folder fails quietly ------------------------------------------------
@@ -448,12 +448,12 @@ def test_progress_announces_the_compilation_once(capsys):
     obs = jnp.zeros((3, 1))
     steps = []
     tick = lambda k: steps.append(int(k))  # noqa: E731
-    csf_jax.particle_filter(obs, ens, problem=model, key=KEY, progress=tick)
+    csf_jax.particle_filter(obs, ens, model=model, key=KEY, progress=tick)
     err = capsys.readouterr().err
     assert "compiling the particle filter (d=2, N=10, K=3) ..." in err
     assert "compiled the particle filter in" in err
-    csf_jax.particle_filter(obs, ens, problem=model, key=KEY, progress=tick)
-    csf_jax.particle_filter(obs, ens, problem=model, key=KEY)
+    csf_jax.particle_filter(obs, ens, model=model, key=KEY, progress=tick)
+    csf_jax.particle_filter(obs, ens, model=model, key=KEY)
     assert capsys.readouterr().err == ""
 
 
@@ -475,7 +475,7 @@ def test_a_time_varying_model_without_its_inputs_is_refused(call):
         if call == "simulate":
             csf_jax.simulate(model, KEY)
         else:
-            csf_jax.particle_filter(jnp.zeros((3, 1)), jnp.zeros((10, 1)), problem=model, key=KEY)
+            csf_jax.particle_filter(jnp.zeros((3, 1)), jnp.zeros((10, 1)), model=model, key=KEY)
     _one_line(caught)
 
 
@@ -496,7 +496,7 @@ def test_a_time_varying_model_without_its_inputs_is_refused(call):
 def test_malformed_models_are_refused_by_field(change, error, message):
     model = _model()._replace(**change)
     with pytest.raises(error, match=f"model 'tiny_lg': {message}") as caught:
-        csf_jax.particle_filter(jnp.zeros((3, 1)), jnp.zeros((10, 2)), problem=model, key=KEY)
+        csf_jax.particle_filter(jnp.zeros((3, 1)), jnp.zeros((10, 2)), model=model, key=KEY)
     _one_line(caught)
 
 
@@ -506,7 +506,7 @@ def test_a_likelihood_model_with_wrong_inputs_is_refused():
         csf_jax.poisson_likelihood(), lambda key: jnp.zeros((1,)),
         lambda key, n: jnp.zeros((n, 1)))
     with pytest.raises(ValueError, match="inputs given, but model 'counts' is not time-varying"):
-        csf_jax.particle_filter(jnp.zeros((3, 1)), jnp.zeros((10, 1)), problem=lik, key=KEY,
+        csf_jax.particle_filter(jnp.zeros((3, 1)), jnp.zeros((10, 1)), model=lik, key=KEY,
                                 inputs=jnp.zeros((3, 1)))
 
 
@@ -528,3 +528,78 @@ def test_train_refuses_a_loss_that_is_not_finite(run_copy, tmp_path):
                                                  "data .* may hold NaN/inf"):
         train("tiny_lg", load(data_dir), str(tmp_path / "ckpt"), network=NET,
               config=dataclasses.replace(TRAIN, seed=3), log_every=2, verbose=False)
+
+
+# --- observation laws of the wrong shape, non-finite simulation inputs ---------------------------
+
+
+def _counts(likelihood, obs_dim=2):
+    return csf_jax.StateSpaceModel(
+        "counts", 2, obs_dim, 3, 1.0, lambda x: 0.9 * x, lambda x: x[:obs_dim], 0.3, likelihood,
+        lambda key: jnp.zeros((2,)), lambda key, n: jnp.zeros((n, 2)))
+
+
+def test_a_likelihood_log_prob_returning_a_scalar_is_refused():
+    poisson = csf_jax.poisson_likelihood()
+    summed = poisson._replace(log_prob=lambda y, eta: jnp.sum(poisson.log_prob(y, eta)))
+    with pytest.raises(ValueError, match=r"model 'counts': its Likelihood.log_prob returns shape "
+                                         r"\(\) for y and eta of shape \(2,\); expected \(2,\)") \
+            as caught:
+        csf_jax.particle_filter(jnp.zeros((3, 2)), jnp.zeros((10, 2)), model=_counts(summed),
+                                key=KEY)
+    _one_line(caught)
+
+
+def test_a_likelihood_sample_of_the_wrong_size_is_refused_by_simulate():
+    poisson = csf_jax.poisson_likelihood()
+    wide = poisson._replace(sample=lambda key, eta: poisson.sample(key, jnp.append(eta, 0.0)))
+    with pytest.raises(ValueError, match=r"simulate: model 'counts': its Likelihood.sample returns "
+                                         r"shape \(3,\) for eta of shape \(2,\); expected \(2,\)") \
+            as caught:
+        csf_jax.simulate(_counts(wide), KEY)
+    _one_line(caught)
+
+
+def test_an_additive_noise_log_prob_of_the_wrong_shape_is_refused():
+    noise = csf_jax.gaussian_noise(0.5)
+    model = _model()._replace(obs_noise=noise._replace(log_prob=lambda r: -0.5 * r * r))
+    with pytest.raises(ValueError, match=r"its ObservationNoise.log_prob returns shape \(1,\) for "
+                                         r"a residual of shape \(1,\); expected a scalar") as caught:
+        csf_jax.particle_filter(jnp.zeros((3, 1)), jnp.zeros((10, 2)), model=model, key=KEY)
+    _one_line(caught)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_simulate_refuses_non_finite_inputs(bad):
+    u = np.zeros((3, 1), np.float32)
+    u[1, 0] = bad
+    with pytest.raises(ValueError, match=r"simulate: inputs has 1 non-finite value\(s\); first at "
+                                         r"index \(1, 0\)") as caught:
+        csf_jax.simulate(_controlled(), KEY, inputs=jnp.asarray(u))
+    _one_line(caught)
+
+
+_RING = csf_jax.ring_localization(4, (0, 2))
+
+
+@pytest.mark.parametrize("build,message", [
+    (lambda: csf_jax.methods.pf(csf_jax.CSFConfig()), "particle_filter: takes no settings"),
+    (lambda: csf_jax.methods.kalman(csf_jax.CSFConfig()), "kalman_filter: takes no settings"),
+    (lambda: csf_jax.methods.enkf(csf_jax.InflationConfig()),
+     "ensemble_kalman_filter: inflation must be a positive number"),
+    (lambda: csf_jax.methods.enkf(True), "inflation must be a positive number"),
+    (lambda: csf_jax.methods.ensf(csf_jax.CSFConfig()), "config must be an ENSFConfig"),
+    (lambda: csf_jax.methods.sf(csf_jax.CSFConfig()), "config must be an SFConfig"),
+    (lambda: csf_jax.methods.sf(sampler=csf_jax.SFConfig()), "sampler a CSFConfig"),
+    (lambda: csf_jax.methods.reference(csf_jax.CSFConfig()), "config must be a ReferenceConfig"),
+    (lambda: csf_jax.methods.local_csf(_RING, csf_jax.CSFConfig()),
+     "config must be a LocalCSFConfig"),
+    (lambda: csf_jax.methods.local_csf(csf_jax.LocalCSFConfig()),
+     "localization must be a Localization"),
+    (lambda: csf_jax.methods.letkf(_RING, csf_jax.CSFConfig()), "config must be a LETKFConfig"),
+    (lambda: csf_jax.methods.letkf(csf_jax.LETKFConfig()), "localization must be a Localization"),
+])
+def test_a_builder_given_the_wrong_config_type_names_the_expected_one(build, message):
+    with pytest.raises(TypeError, match=message) as caught:
+        build()
+    _one_line(caught)

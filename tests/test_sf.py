@@ -8,13 +8,12 @@ import pytest
 from conftest import make_linear_case
 
 import csf_jax
-from csf_jax import CSFConfig, NetworkConfig, SFConfig
+from csf_jax import CSFConfig, InflationConfig, NetworkConfig, SamplerConfig, SFConfig
 
 SMALL_NET = NetworkConfig(hidden=16, heads=2, blocks=1, code_dim=8, score_hidden=64,
                           score_layers=2)
 SF = SFConfig(train_steps=100, warmup_steps=1500, batch=256, lr=2e-3, network=SMALL_NET)
-SAMPLER = CSFConfig(reverse_steps=100, prior_inflation=0.0,
-                    adaptive_inflation=False)  # compared with Kalman: exact update
+SAMPLER = CSFConfig(sampler=SamplerConfig(reverse_steps=100), inflation=InflationConfig(base=0.0, adaptive=False))  # compared with Kalman: exact update
 
 
 @pytest.fixture(scope="module")
@@ -27,7 +26,7 @@ def test_sf_tracks_kalman(case):
     """SF's mean is within half a Kalman std of the Kalman mean (rms over steps and coordinates); a
     filter blind to the data is further than 2.5x that. Measured (this config, N = 400, L = 100):
     mean error rms 0.37, std error rms 0.12; blind 1.34."""
-    r = csf_jax.score_filter(case.obs, case.ensemble, problem=case.model, key=jax.random.key(0),
+    r = csf_jax.score_filter(case.obs, case.ensemble, model=case.model, key=jax.random.key(0),
                              config=SF, sampler=SAMPLER)
     err = case.errors(r.mean, r.std)
     assert err.mean_rms < 0.5, err
@@ -39,8 +38,8 @@ def test_sf_tracks_kalman(case):
 def test_same_key_same_result_and_vmap(case):
     obs, ens = case.obs[:3], case.ensemble[:64]
     cfg = SFConfig(train_steps=5, warmup_steps=10, batch=32, network=SMALL_NET)
-    smp = CSFConfig(reverse_steps=10)
-    run = lambda o, e, k: csf_jax.score_filter(o, e, problem=case.model, key=k, config=cfg,
+    smp = CSFConfig(sampler=SamplerConfig(reverse_steps=10))
+    run = lambda o, e, k: csf_jax.score_filter(o, e, model=case.model, key=k, config=cfg,
                                                sampler=smp, check_finite=False)
     a = run(obs, ens, jax.random.key(1))
     b = run(obs, ens, jax.random.key(1))
@@ -55,10 +54,10 @@ def test_same_key_same_result_and_vmap(case):
 
 def test_progress_callback_sees_every_step(case):
     seen = []
-    csf_jax.score_filter(case.obs[:4], case.ensemble[:32], problem=case.model,
+    csf_jax.score_filter(case.obs[:4], case.ensemble[:32], model=case.model,
                          key=jax.random.key(0), progress=lambda k: seen.append(int(k)),
                          config=SFConfig(train_steps=2, warmup_steps=0, batch=8,
-                                         network=SMALL_NET), sampler=CSFConfig(reverse_steps=4))
+                                         network=SMALL_NET), sampler=CSFConfig(sampler=SamplerConfig(reverse_steps=4)))
     assert seen == [0, 1, 2, 3]
 
 
@@ -71,16 +70,16 @@ def test_bad_config_raises(field, value):
 
 def test_bad_inputs_raise(case):
     with pytest.raises(ValueError, match="score_filter"):
-        csf_jax.score_filter(case.obs[:, :1], case.ensemble, problem=case.model,
+        csf_jax.score_filter(case.obs[:, :1], case.ensemble, model=case.model,
                              key=jax.random.key(0))
     with pytest.raises(ValueError, match="sigma_max"):
-        csf_jax.score_filter(case.obs, case.ensemble, problem=case.model, key=jax.random.key(0),
-                             sampler=CSFConfig(sigma_max=10.0))
+        csf_jax.score_filter(case.obs, case.ensemble, model=case.model, key=jax.random.key(0),
+                             sampler=CSFConfig(sampler=SamplerConfig(sigma_max=10.0)))
 
 
 SHARDED_FIT = r"""
 import os
-os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2 --xla_backend_optimization_level=0"
+os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
 import jax, numpy as np, csf_jax
 from csf_jax import CSFConfig, NetworkConfig, SFConfig
 assert len(jax.devices()) == 2
@@ -89,7 +88,7 @@ truth, obs = csf_jax.simulate(m, jax.random.key(0))
 ens = m.initial_ensemble(jax.random.key(1), 64)
 net = NetworkConfig(hidden=16, heads=2, blocks=1, code_dim=8, score_hidden=32, score_layers=2)
 cfg, sampler = SFConfig(train_steps=10, warmup_steps=20, batch=32, network=net), CSFConfig(reverse_steps=5)
-run = lambda s: csf_jax.score_filter(obs, ens, problem=m, key=jax.random.key(2), config=cfg,
+run = lambda s: csf_jax.score_filter(obs, ens, model=m, key=jax.random.key(2), config=cfg,
                                      sampler=sampler, shards=s, return_ensembles=True).ensembles
 one, two = run(1), run(2)
 err = float(np.abs(np.asarray(one) - np.asarray(two)).max())

@@ -1,6 +1,7 @@
-"""The site-sharded LETKF (``csf_jax.filters.sharded``) equals ``csf_jax.letkf``: on 1 (here), 2 and
-4 CPU devices of one process, and on two processes joined by ``jax.distributed``; and it refuses what
-it cannot filter exactly with one-line errors.
+"""The site-sharded LETKF (``csf_jax.filters.sharded``) equals ``csf_jax.letkf``, and the sharded
+transform CSF (``csf_jax.filters.sharded_transform``) equals ``csf_jax.local_transform_filter``: on 1
+(here), 2 and 4 CPU devices of one process, and on two processes joined by ``jax.distributed``; and
+they refuse what they cannot filter exactly with one-line errors.
 
 The runs on several devices happen in subprocesses (``tests/_distributed_worker.py``): jax fixes
 its device count when it starts, and this process has one device. Every subprocess has a timeout,
@@ -29,6 +30,7 @@ from csf_jax.filters.sharded import (
     site_plan,
     site_slots,
 )
+from csf_jax.filters.sharded_transform import sharded_transform_filter
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -37,6 +39,9 @@ TIMEOUT = 150
 # float32 round-off: the window sums run in another order than csf_jax.letkf's (atol 1e-5 on
 # values of order 10 leaves the relative part to rtol)
 TOL = dict(rtol=1e-5, atol=1e-5)
+# the transform CSF in float64: 1e-14 step by step, but a Levenberg-Marquardt step that a
+# converged site accepts or refuses on a round-off difference of its cost moves it by up to 1e-9
+TOL64 = dict(rtol=0, atol=1e-7)
 
 
 def _worker_module():
@@ -68,15 +73,20 @@ def _split(data, prefix: str) -> dict:
     return {k: data[f"{prefix}/{k}"] for k in ("mean", "std", "ensembles", "finite")}
 
 
-@pytest.fixture(scope="module")
-def several_devices(tmp_path_factory):
-    """The results of ``_distributed_worker.py local`` in a process with 4 CPU devices: every case
-    of ``CASES``, ``letkf`` and ``sharded_letkf`` on meshes of the case's device counts."""
-    out = str(tmp_path_factory.mktemp("sharded") / "local.npz")
-    done = subprocess.run([sys.executable, WORKER, "local", out], env=_env(4), cwd=ROOT,
+def _worker_results(tmp_path_factory, mode: str):
+    """The results of ``_distributed_worker.py <mode>`` in a process with 4 CPU devices."""
+    out = str(tmp_path_factory.mktemp("sharded") / f"{mode}.npz")
+    done = subprocess.run([sys.executable, WORKER, mode, out], env=_env(4), cwd=ROOT,
                           capture_output=True, text=True, timeout=TIMEOUT, check=False)
     assert done.returncode == 0, done.stderr[-3000:]
     return np.load(out)
+
+
+@pytest.fixture(scope="module")
+def several_devices(tmp_path_factory):
+    """Every case of ``CASES``, ``letkf`` and ``sharded_letkf`` on meshes of the case's device
+    counts (``_worker_results`` of "local")."""
+    return _worker_results(tmp_path_factory, "local")
 
 
 @pytest.mark.parametrize("case", list(W.CASES))
@@ -93,15 +103,30 @@ def test_sharded_equals_letkf_on_several_devices(several_devices, case):
         assert rmse == pytest.approx(float(csf_jax.rmse(want["mean"], truth)), rel=1e-5)
 
 
+@pytest.fixture(scope="module")
+def transform_devices(tmp_path_factory):
+    """The transform CSF on one device and sharded (``_worker_results`` of "transform")."""
+    return _worker_results(tmp_path_factory, "transform")
+
+
+@pytest.mark.parametrize("case", list(W.TRANSFORM_CASES))
+def test_sharded_transform_equals_one_device_on_several_devices(transform_devices, case):
+    want = _split(transform_devices, f"{case}/one")
+    assert want["finite"].all() and want["mean"].dtype == np.float64
+    for run in ("sharded4", "sharded2_chunk4"):
+        _assert_same(_split(transform_devices, f"{case}/{run}"), want, f"{case}, {run}", TOL64)
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("localhost", 0))
         return s.getsockname()[1]
 
 
-@pytest.mark.parametrize("local_devices", [1, pytest.param(2, marks=pytest.mark.slow)])
-def test_sharded_over_two_processes_equals_letkf(tmp_path, local_devices):
-    model, loc, config = W.problem("identity")
+def _two_processes(tmp_path, local_devices: int, filter_name: str) -> tuple:
+    """Run ``_distributed_worker.py distributed`` as two processes on the identity case (30 %
+    of the observations and some whole steps missing); their gathered results and the inputs."""
+    model, loc, _ = W.problem("identity")
     _, obs, ens = W.inputs(model, 0.3)
     assert np.isnan(obs).any() and np.isnan(obs).all(axis=1).any()
     given = str(tmp_path / "inputs.npz")
@@ -114,8 +139,9 @@ def test_sharded_over_two_processes_equals_letkf(tmp_path, local_devices):
         for i in range(2):
             with open(logs[i], "w") as log:       # files, not pipes: nothing blocks on output
                 procs.append(subprocess.Popen(
-                    [sys.executable, WORKER, "distributed", str(i), str(port), given, outs[i]],
-                    env=_env(local_devices), cwd=ROOT, stdout=log, stderr=subprocess.STDOUT))
+                    [sys.executable, WORKER, "distributed", str(i), str(port), given, outs[i],
+                     filter_name], env=_env(local_devices), cwd=ROOT, stdout=log,
+                    stderr=subprocess.STDOUT))
         for proc in procs:
             proc.wait(timeout=TIMEOUT)
     finally:
@@ -125,14 +151,31 @@ def test_sharded_over_two_processes_equals_letkf(tmp_path, local_devices):
                 proc.wait()
     for proc, log in zip(procs, logs):
         assert proc.returncode == 0, log.read_text()[-3000:]
-    ref = csf_jax.letkf(obs, ens, problem=model, key=jax.random.key(2), localization=loc,
-                        config=config, return_ensembles=True)
-    want = {k: np.asarray(getattr(ref, k)) for k in ("mean", "std", "ensembles", "finite")}
-    for i, out in enumerate(outs):
-        data = np.load(out)
+    datas = [np.load(out) for out in outs]
+    for data in datas:
         assert int(data["devices"]) == 2 * local_devices
         assert int(data["local"]) == local_devices
+    return model, loc, obs, ens, datas
+
+
+@pytest.mark.parametrize("local_devices", [1, pytest.param(2, marks=pytest.mark.slow)])
+def test_sharded_over_two_processes_equals_letkf(tmp_path, local_devices):
+    model, loc, obs, ens, datas = _two_processes(tmp_path, local_devices, "letkf")
+    ref = csf_jax.letkf(obs, ens, model=model, key=jax.random.key(2), localization=loc,
+                        config=W.problem("identity")[2], return_ensembles=True)
+    want = {k: np.asarray(getattr(ref, k)) for k in ("mean", "std", "ensembles", "finite")}
+    for i, data in enumerate(datas):
         _assert_same(_split(data, "sharded"), want, f"process {i}")
+
+
+def test_sharded_transform_over_two_processes_equals_one_device(tmp_path, x64):
+    model, loc, obs, ens, datas = _two_processes(tmp_path, 1, "transform")
+    ref = csf_jax.local_transform_filter(obs.astype(np.float64), ens.astype(np.float64),
+                                         model=model, key=jax.random.key(2), localization=loc,
+                                         config=W.transform_config(), return_ensembles=True)
+    want = {k: np.asarray(getattr(ref, k)) for k in ("mean", "std", "ensembles", "finite")}
+    for i, data in enumerate(datas):
+        _assert_same(_split(data, "sharded"), want, f"process {i}", TOL64)
 
 
 # --- one device here: the plan, the refusals, the single-device run ---------------------------------
@@ -180,7 +223,7 @@ def small():
 def _call(small, obs=None, ensemble=None, **overrides):
     """``sharded_letkf`` on the ``small`` case, with arguments replaced by ``overrides``."""
     model, loc, config, obs_, ens_ = small
-    kwargs = dict(problem=model, key=jax.random.key(2), localization=loc, config=config)
+    kwargs = dict(model=model, key=jax.random.key(2), localization=loc, config=config)
     return sharded_letkf(obs_ if obs is None else obs, ens_ if ensemble is None else ensemble,
                          **{**kwargs, **overrides})
 
@@ -196,7 +239,7 @@ def test_sensor_mixing_sites_is_refused(small):
     model = small[0]
     mixing = model._replace(observe=lambda x: x + 0.5 * jnp.roll(x, 1), name="mixing")
     with pytest.raises(ValueError, match="not a point sensor"):
-        _call(small, problem=mixing)
+        _call(small, model=mixing)
 
 
 def test_misplaced_observations_are_refused(small):
@@ -243,8 +286,43 @@ def test_one_device_run_equals_letkf(small, chunk, double, request):
         obs, ens, tol = obs.astype(np.float64), ens.astype(np.float64), dict(rtol=0, atol=1e-10)
     got = gather_result(_call(small, obs, ens, return_ensembles=True, mesh=site_mesh(),
                               chunk=chunk))
-    ref = csf_jax.letkf(obs, ens, problem=model, key=jax.random.key(2), localization=loc,
+    ref = csf_jax.letkf(obs, ens, model=model, key=jax.random.key(2), localization=loc,
                         config=config, return_ensembles=True)
     assert got.mean.dtype == ref.mean.dtype == (np.float64 if double else np.float32)
     _assert_same(got._asdict(), ref._asdict(), f"one device, chunk {chunk}", tol)
     assert isinstance(got.mean, np.ndarray) and got.ess is None and got.info is None
+
+
+def test_probe_errors_are_one_line(small):
+    model, loc, config, obs, ens = small
+    with pytest.raises(ValueError, match="site_mesh: devices is empty"):
+        site_mesh([])
+    with pytest.raises(TypeError, match="site_mesh: devices must be a sequence of jax devices"):
+        site_mesh("cpu")
+    with pytest.raises(TypeError, match="site_mesh: devices must be jax devices"):
+        site_mesh([0, 1])
+    with pytest.raises(TypeError, match="gather_result: takes the FilterResult of a sharded "
+                                        "filter, got NoneType"):
+        gather_result(None)
+    for run, conf in ((sharded_letkf, config), (sharded_transform_filter,
+                                                csf_jax.LocalTransformConfig())):
+        name = run.__name__
+        with pytest.raises(TypeError, match=f"{name}: takes concrete arrays .* not tracers of "
+                                            f"an outer jax.jit"):
+            jax.jit(lambda o: run(o, ens, model=model, key=jax.random.key(2), localization=loc,
+                                  config=conf).mean)(obs)
+
+
+def test_one_device_transform_equals_local_transform(small):
+    model, loc, _, obs, ens = small
+    kw = dict(model=model, key=jax.random.key(2), localization=loc,
+              config=W.transform_config(), return_ensembles=True)
+    got = gather_result(sharded_transform_filter(obs, ens, mesh=site_mesh(), **kw))
+    ref = csf_jax.local_transform_filter(obs, ens, **kw)
+    _assert_same(got._asdict(), ref._asdict(), "one device, transform")
+    with pytest.raises(TypeError, match="sharded_transform_filter: config must be a "
+                                        "LocalTransformConfig, got LETKFConfig"):
+        sharded_transform_filter(obs, ens, **dict(kw, config=csf_jax.LETKFConfig()))
+    with pytest.raises(ValueError, match="sharded_transform_filter: needs the ring"):
+        sharded_transform_filter(obs, ens, **dict(kw, localization=csf_jax.Localization(
+            loc.state, loc.obs, None)))

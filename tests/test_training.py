@@ -68,8 +68,8 @@ def test_small_model_trains_and_loss_falls(tiny_data, tmp_path):
     model = problems.get("double_well", num_steps=3)
     _, obs = csf_jax.simulate(model, jax.random.key(0))
     ens = model.initial_ensemble(jax.random.key(1), 32)
-    r = csf_jax.filter(params, obs, ens, problem=model, network=SMALL_NET, key=jax.random.key(2),
-                       config=csf_jax.CSFConfig(reverse_steps=20))
+    r = csf_jax.filter(params, obs, ens, model=model, network=SMALL_NET, key=jax.random.key(2),
+                       config=csf_jax.CSFConfig(sampler=csf_jax.SamplerConfig(reverse_steps=20)))
     assert bool(jnp.isfinite(r.mean).all())
 
 
@@ -124,9 +124,15 @@ def test_mismatched_checkpoint_fails_clearly(tiny_data, tmp_path):
               config=dataclasses.replace(cfg, seed=1), verbose=False)
 
 
-TRAIN_CMD = [sys.executable, "-m", "experiments.train", "double_well", "--trajectories", "12",
-             "--particles", "200", "--keep", "64", "--steps", "60", "--save-every", "5",
-             "--batch-sets", "4", "--targets", "16", "--set-sizes", "16"]
+TRAIN_SCRIPT = """
+import sys, jax, csf_jax
+from csf_jax.training import DatasetConfig, TrainConfig
+csf_jax.train_prior("double_well", jax.random.key(0), directory=sys.argv[1],
+                    dataset=DatasetConfig(trajectories=12, particles=200, keep=64),
+                    config=TrainConfig(steps=60, save_every=5, eval_every=5, batch_sets=4,
+                                       targets_per_set=16, set_sizes=(16,)))
+"""
+TRAIN_CMD = [sys.executable, "-c", TRAIN_SCRIPT]
 
 
 def _final_params(out):
@@ -138,13 +144,13 @@ def _final_params(out):
 
 
 def _run(out, env, **kw):
-    return subprocess.run(TRAIN_CMD + ["--out", out], env=env, capture_output=True, text=True,
+    return subprocess.run(TRAIN_CMD + [out], env=env, capture_output=True, text=True,
                           cwd=ROOT, timeout=300, **kw)
 
 
 def _kill_mid_training(out, env):
     """Start the CLI, SIGKILL it once a checkpoint at step >= 15 exists; return that step."""
-    proc = subprocess.Popen(TRAIN_CMD + ["--out", out], env=env, stderr=subprocess.DEVNULL,
+    proc = subprocess.Popen(TRAIN_CMD + [out], env=env, stderr=subprocess.DEVNULL,
                             stdout=subprocess.DEVNULL, cwd=ROOT)
     ckpt = os.path.join(out, "ckpt")
     deadline = time.time() + 240
@@ -200,13 +206,13 @@ def test_pretrained_for_wrong_dimension_fails_clearly():
     _, obs = csf_jax.simulate(model, jax.random.key(0))
     ens = model.initial_ensemble(jax.random.key(1), 16)
     with pytest.raises(ValueError, match="d=1.*d=10"):
-        csf_jax.filter(dw.params, obs, ens, problem=model, network=dw.network,
+        csf_jax.filter(dw.params, obs, ens, model=model, network=dw.network,
                        key=jax.random.key(2))
 
 
 def test_shipped_models_were_trained_by_their_committed_recipe():
     """Every shipped model's recorded training config is ``csf_jax.pretrained.TRAIN`` of its
-    problem and its network ``NETWORK``, so ``python -m experiments.make_pretrained`` remakes what
+    problem and its network ``NETWORK``, so ``python -m experiments.train --export`` remakes what
     ships (fields added to TrainConfig after a model was made are read as their defaults); the
     benchmark times that network."""
     import json

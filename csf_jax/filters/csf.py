@@ -8,7 +8,7 @@ Each filter step, inside one jitted ``lax.scan`` over the K observations (``csf_
       -> lax.scan over L reverse steps for the ensemble component's members (particle and shock
          members keep their importance draws) -> posterior ensemble (the next carry); mean, std.
 
-Two samplers, chosen by ``CSFConfig.guidance.mode``:
+Two samplers, chosen by ``CSFConfig.sampler.guidance.mode``:
 
 * ``"kalman"`` (default): the ancestral sampler. It starts from the prior ensemble noised to
   ``sigma_start`` and walks down a geometric grid of noise levels to 0. At each level the prior
@@ -16,7 +16,8 @@ Two samplers, chosen by ``CSFConfig.guidance.mode``:
   ``x_0 | x_t``, Kalman guidance (``csf_jax.guidance.kalman_tweedie``) turns them into the
   posterior ``x_0 | x_t, y ~ N(u, A^{-1})``, and the exact VE bridge (``csf_jax.sde.bridge``) draws
   the next level. Every step is exact for a Gaussian prior and a linear Gaussian likelihood,
-  whatever the step count, so 20 steps suffice where Euler-Maruyama needed 500.
+  whatever the step count, so few steps suffice (the default 20; the paper's Euler-Maruyama
+  takes 500; measured on docs/ablation.md).
 * a DPS mode (``"clipped"``, ``"raw"``, ``"normalized"``, ``"none"``): the paper's Euler-Maruyama
   on the reverse VE SDE, ``x <- x + g^2 dt (s + guidance) + g sqrt(dt) eps``, on
   ``linspace(1, t_min, L)``, from ``N(0, sigma_1^2 I)``. Alg. 2 writes the drift with a minus sign
@@ -28,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import warnings
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -36,8 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from csf_jax import _checks, mixture, networks, trained
-from csf_jax.covariance import CovarianceConfig
-from csf_jax.filters.driver import Method, StepOutput, run
+from csf_jax.filters.driver import Kernel, Method, StepOutput, run
 from csf_jax.filters.result import FilterResult
 from csf_jax.guidance import (
     GuidanceConfig,
@@ -46,10 +47,11 @@ from csf_jax.guidance import (
     kalman_tweedie,
     resample_posterior,
 )
-from csf_jax.inflation import STATISTICS, adaptive_inflation
+from csf_jax.inflation import InflationConfig, adaptive_inflation
 from csf_jax.mixture import MixtureConfig
 from csf_jax.networks import NetworkConfig
 from csf_jax.prior import (
+    PriorConfig,
     PriorScore,
     ensemble_moments,
     exact_mixture_prior,
@@ -79,58 +81,24 @@ from csf_jax.ssm import (
 
 
 @dataclasses.dataclass(frozen=True)
-class CSFConfig:
-    """Online-stage settings; defaults reproduce the README's tables.
+class SamplerConfig:
+    """How CSF draws the posterior ensemble of one filter step (``CSFConfig.sampler``).
 
-    reverse_steps: L, reverse steps per filter step (paper: 500 Euler-Maruyama steps; default 20
-      ancestral steps with Kalman guidance: docs/ablation.md measured 20 against 50).
-    t_min: last reverse time. Euler-Maruyama: times ``linspace(1, t_min, L)``. Ancestral: the
-      noise levels run geometrically from ``sigma_t(1)`` (9.85) to ``sigma_t(t_min)`` (0.032), then
-      to 0.
-    sigma_max: VE SDE scale s (paper: 25).
-    guidance: how the likelihood enters, and with it the sampler (see the module docstring and
-      ``csf_jax.guidance``): "kalman" (ancestral, default) or a DPS mode (Euler-Maruyama).
-    assimilate_first: False reproduces the paper's ``1{k>0}``: the first observation only shapes the
-      prior sampling, it is not assimilated. Default True: every observation is used, as PF/EnKF do.
-    denoise_last: drop the noise of the last Euler-Maruyama step (the usual "denoise" of score-SDE
-      samplers). The ancestral sampler's last step is the exact draw of ``x_0 | x_t, y`` instead.
-    prior_inflation: tau >= 0. The prior score is evaluated at the noise level
-      ``sqrt(sigma_t^2 + tau^2)``, i.e. the prior is convolved with ``N(0, tau^2 I)`` (the score-based
-      form of the ensemble filters' covariance inflation). 0 is the paper's sampler. A broader prior
-      lets the likelihood pull the ensemble to a state the model deems (nearly) impossible, such
-      as the mirror well after an unmodelled shock. Default 0, the base of the adaptive inflation:
-      the exact Bayes update between surprises. Whole-score learned priors (no Gaussian base)
-      needed 0.2; with the Gaussian-base priors 0 is better in five of the seven columns
-      (docs/ablation.md).
-    adaptive_inflation: choose the inflation per filter step from the innovation
-      (``csf_jax.inflation.adaptive_inflation``): ``tau^2 = prior_inflation^2 + s``, with ``s > 0`` only
-      when the observation is improbable under the prior ensemble (a shock), 0 otherwise. Default
-      True (the tables'). With ``mixture``, set it False (``ROBUST``): the shock components decide
-      by the evidence instead; a threshold on the innovation reads a nonlinear sensor's surprises
-      as shocks (docs/zoo.md).
-    inflation_threshold: the adaptive inflation's trigger, in standard deviations of the chi-square
-      innovation statistic above its mean m.
-    inflation_max: cap on the adaptive part of tau.
-    inflation_statistic: "median" (default: a majority of coordinates must be surprised; robust to
-      heavy-tailed noise such as Cauchy, where "chi2" reads one outlier as a shock) or "chi2" (the
-      innovation's chi-square sum).
-    encode_particles: how many particles of the prior ensemble the set encoder of the default
-      learned prior sees (the first n; particles are exchangeable; ``learned_prior(network, n)``;
-      a ``prior=`` given to the filter brings its own). None: all N. The encoder's self-attention costs O(n^2), and the
-      priors were trained on sets of 32-128 particles. Default 256: at N = 1000 the same RMSE as
-      all N on the double well and cubic10_indep, +0.7% on Cauchy, and 0.6x the time of a double-well
-      step (docs/ablation.md).
-    mixture: the mixture prior (``csf_jax.mixture.MixtureConfig``: particle, ensemble and shock
-      components weighed by their evidence), or None (default) for the ensemble component alone
-      (the paper's sampler with this config's inflation). Used by the ancestral sampler
-      ("kalman"). ``ROBUST`` turns it on: within 1.06x of the better of PF and EnKF on the zoo's
-      eight models, where the default loses runs (docs/zoo.md), but 1.5x the reference on the
-      triple well (the default: 1.13x). With ``params=None`` its ensemble component is the
-      ensemble's Gaussian (the particle components already are the exact mixture).
-    covariance: how the prior ensemble's covariance is estimated wherever the sampler uses the
-      ensemble's Gaussian: the Kalman guidance's precision, the Gaussian prior, a Gaussian-base
-      learned prior's base and the mixture's ensemble component (``csf_jax.CovarianceConfig``:
-      "sample", "ledoit_wolf", "localised"). Default the sample covariance (docs/small_ensembles.md).
+    Attributes:
+      reverse_steps: L, reverse steps per filter step (paper: 500 Euler-Maruyama steps; the
+        ancestral sampler with Kalman guidance is exact for a Gaussian prior and a linear Gaussian
+        likelihood at any L, so 20 suffice: docs/ablation.md).
+      t_min: last reverse time. Euler-Maruyama: times ``linspace(1, t_min, L)``. Ancestral: the
+        noise levels run geometrically from ``sigma_t(1)`` (9.85) to ``sigma_t(t_min)`` (0.032), then
+        to 0.
+      sigma_max: VE SDE scale s (paper: 25).
+      guidance: how the likelihood enters, and with it the sampler (module docstring and
+        ``csf_jax.guidance``): "kalman" (ancestral) or a DPS mode (Euler-Maruyama).
+      assimilate_first: False reproduces the paper's ``1{k>0}``: the first observation only shapes
+        the prior sampling, it is not assimilated. True: every observation is used, as PF/EnKF do.
+      denoise_last: drop the noise of the last Euler-Maruyama step (the usual "denoise" of
+        score-SDE samplers). The ancestral sampler's last step is the exact draw of
+        ``x_0 | x_t, y`` instead.
     """
 
     reverse_steps: int = 20
@@ -139,44 +107,100 @@ class CSFConfig:
     guidance: GuidanceConfig = GuidanceConfig()
     assimilate_first: bool = True
     denoise_last: bool = True
-    prior_inflation: float = 0.0
-    adaptive_inflation: bool = True
-    inflation_threshold: float = 2.0
-    inflation_max: float = 10.0
-    inflation_statistic: str = "median"
-    encode_particles: int | None = 256
-    mixture: MixtureConfig | None = None
-    covariance: CovarianceConfig = CovarianceConfig()
 
     def __post_init__(self):
         _checks.check_fields(self)
         if self.reverse_steps < 2:
-            raise ValueError(f"CSFConfig.reverse_steps must be >= 2, got {self.reverse_steps}")
+            raise ValueError(f"SamplerConfig.reverse_steps must be >= 2, got {self.reverse_steps}")
         if not 0.0 < self.t_min < 1.0:
-            raise ValueError(f"CSFConfig.t_min must lie in (0, 1), got {self.t_min}")
+            raise ValueError(f"SamplerConfig.t_min must lie in (0, 1), got {self.t_min}")
         if not self.sigma_max > 1.0:
-            raise ValueError(f"CSFConfig.sigma_max must be > 1, got {self.sigma_max}")
-        if not self.prior_inflation >= 0.0:
-            raise ValueError(f"CSFConfig.prior_inflation must be >= 0, got {self.prior_inflation}")
-        if not self.inflation_max > 0.0 or not np.isfinite(self.inflation_threshold):
-            raise ValueError(f"CSFConfig needs inflation_max > 0 and a finite inflation_threshold, "
-                             f"got {self.inflation_max}, {self.inflation_threshold}")
-        if self.inflation_statistic not in STATISTICS:
-            raise ValueError(f"CSFConfig.inflation_statistic must be one of {STATISTICS}, got "
-                             f"{self.inflation_statistic!r}")
-        n = self.encode_particles
-        if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 2):
-            raise ValueError(f"CSFConfig.encode_particles must be None or an int >= 2, got {n!r}")
+            raise ValueError(f"SamplerConfig.sigma_max must be > 1, got {self.sigma_max}")
 
 
-ROBUST = CSFConfig(adaptive_inflation=False, mixture=MixtureConfig())
+# The flat keywords CSFConfig accepts for one version, each with its group and field there.
+FLAT_FIELDS = {
+    "reverse_steps": ("sampler", "reverse_steps"), "t_min": ("sampler", "t_min"),
+    "sigma_max": ("sampler", "sigma_max"), "guidance": ("sampler", "guidance"),
+    "assimilate_first": ("sampler", "assimilate_first"),
+    "denoise_last": ("sampler", "denoise_last"),
+    "prior_inflation": ("inflation", "base"), "adaptive_inflation": ("inflation", "adaptive"),
+    "inflation_threshold": ("inflation", "threshold"), "inflation_max": ("inflation", "max"),
+    "inflation_statistic": ("inflation", "statistic"),
+    "encode_particles": ("prior", "encode_particles"), "mixture": ("prior", "mixture"),
+    "covariance": ("prior", "covariance"),
+}
+
+
+@dataclasses.dataclass(frozen=True, init=False)
+class CSFConfig:
+    """Online-stage settings in three groups; the defaults are what the README's tables show.
+
+    Attributes:
+      sampler: how the posterior is drawn (``SamplerConfig``: reverse steps, noise schedule,
+        guidance).
+      inflation: the prior inflation per filter step (``csf_jax.inflation.InflationConfig``: fixed
+        base, adaptive trigger).
+      prior: what the prior score is built from besides the network (``csf_jax.prior.PriorConfig``:
+        the encoder's particles, the mixture prior, the covariance estimator).
+
+    The flat keywords of the 0.5 series (``CSFConfig(reverse_steps=5)``,
+    ``config.reverse_steps``) still work for this version, with a ``DeprecationWarning`` naming
+    the grouped form (``FLAT_FIELDS``).
+    """
+
+    sampler: SamplerConfig = SamplerConfig()
+    inflation: InflationConfig = InflationConfig()
+    prior: PriorConfig = PriorConfig()
+
+    def __init__(self, sampler: SamplerConfig = SamplerConfig(),
+                 inflation: InflationConfig = InflationConfig(), prior: PriorConfig = PriorConfig(),
+                 **flat):
+        unknown = sorted(set(flat) - set(FLAT_FIELDS))
+        if unknown:
+            raise TypeError(f"CSFConfig got unknown field(s) {', '.join(unknown)}; its groups are "
+                            f"sampler, inflation and prior (fields: csf_jax.filters.csf.FLAT_FIELDS)")
+        groups = {"sampler": sampler, "inflation": inflation, "prior": prior}
+        for group in groups.values():
+            if not isinstance(group, (SamplerConfig, InflationConfig, PriorConfig)):
+                raise TypeError(f"CSFConfig's groups must be SamplerConfig, InflationConfig and "
+                                f"PriorConfig, got {group!r}")
+        for name, value in flat.items():
+            group, field = FLAT_FIELDS[name]
+            _warn_flat(name)
+            groups[group] = dataclasses.replace(groups[group], **{field: value})
+        for name, group in groups.items():
+            object.__setattr__(self, name, group)
+        _checks.check_fields(self)
+        mode = self.sampler.guidance.mode
+        if self.prior.mixture is not None and mode != "kalman":
+            raise ValueError(f"CSFConfig.prior.mixture needs CSFConfig.sampler.guidance.mode="
+                             f"'kalman' (its members come from the ancestral sampler), got "
+                             f"{mode!r}; use prior=PriorConfig(mixture=None) for a DPS mode")
+
+    def __getattr__(self, name):
+        if name in FLAT_FIELDS:
+            _warn_flat(name)
+            group, field = FLAT_FIELDS[name]
+            return getattr(getattr(self, group), field)
+        raise AttributeError(f"'CSFConfig' object has no attribute {name!r}")
+
+
+def _warn_flat(name: str) -> None:
+    group, field = FLAT_FIELDS[name]
+    warnings.warn(f"CSFConfig.{name} is CSFConfig.{group}.{field} (the flat form goes in the next "
+                  f"version)", DeprecationWarning, stacklevel=3)
+
+
+ROBUST = CSFConfig(inflation=InflationConfig(adaptive=False),
+                   prior=PriorConfig(mixture=MixtureConfig()))
 """CSF for a model it was not tuned on: the mixture prior (``csf_jax.mixture``) with its evidence
 -weighed shock components in place of the innovation-triggered inflation (docs/zoo.md)."""
 
 
 def uses_kalman(config: CSFConfig) -> bool:
     """Whether ``config`` selects the ancestral sampler with Kalman guidance."""
-    return config.guidance.mode == "kalman"
+    return config.sampler.guidance.mode == "kalman"
 
 
 class SamplerStart(NamedTuple):
@@ -194,16 +218,16 @@ class SamplerStart(NamedTuple):
 
 def step_inflation(config: CSFConfig, prior_ens, y=None, model: StateSpaceModel | None = None,
                    guide=1.0):
-    """This filter step's prior inflation ``tau``: fixed (``config.prior_inflation``, a Python
+    """This filter step's prior inflation ``tau``: fixed (``config.inflation.base``, a Python
     float, so that the samplers keep their static shortcut for 0), or adaptive (a traced scalar) from
-    the innovation of ``y (m,)`` under ``prior_ens (N, d)`` when ``config.adaptive_inflation`` (and y
+    the innovation of ``y (m,)`` under ``prior_ens (N, d)`` when ``config.inflation.adaptive`` (and y
     is assimilated: ``guide`` 1)."""
-    tau = config.prior_inflation
-    if not config.adaptive_inflation or y is None:
+    tau = config.inflation.base
+    if not config.inflation.adaptive or y is None:
         return tau
-    adaptive = adaptive_inflation(prior_ens, y, model, config.prior_inflation,
-                                  config.inflation_threshold, config.inflation_max,
-                                  statistic=config.inflation_statistic)
+    adaptive = adaptive_inflation(prior_ens, y, model, config.inflation.base,
+                                  config.inflation.threshold, config.inflation.max,
+                                  statistic=config.inflation.statistic)
     return jnp.where(guide > 0, adaptive, tau).astype(prior_ens.dtype)
 
 
@@ -215,12 +239,12 @@ def sampler_start(config: CSFConfig, prior_ens, key, y=None, model: StateSpaceMo
     ``(C + tau^2 I)^{-1}``. Euler-Maruyama: ``N(0, sigma_1^2 I)`` (Alg. 2) and no precision.
     ``y``/``model``/``guide``: for the adaptive inflation (``step_inflation``).
     """
-    sigma_1 = marginal_std(1.0, config.sigma_max)
+    sigma_1 = marginal_std(1.0, config.sampler.sigma_max)
     noise = jax.random.normal(key, prior_ens.shape, prior_ens.dtype)
     tau = step_inflation(config, prior_ens, y, model, guide)
     if not uses_kalman(config):
         return sigma_1 * noise, SamplerStart(None, tau)
-    precision = gaussian_precision(prior_ens, tau, covariance=config.covariance)
+    precision = gaussian_precision(prior_ens, tau, covariance=config.prior.covariance)
     return prior_ens + sigma_1 * noise, SamplerStart(precision, tau)
 
 
@@ -233,9 +257,9 @@ def ancestral_sample(params, prior: PriorScore, context, model: StateSpaceModel,
     start.tau: the prior inflation.
     """
     precision = start.precision
-    sigma_max = config.sigma_max
-    levels = jnp.asarray(noise_levels(config.reverse_steps, marginal_std_host(1.0, sigma_max),
-                                      marginal_std_host(config.t_min, sigma_max)), x_init.dtype)
+    sigma_max = config.sampler.sigma_max
+    levels = jnp.asarray(noise_levels(config.sampler.reverse_steps, marginal_std_host(1.0, sigma_max),
+                                      marginal_std_host(config.sampler.t_min, sigma_max)), x_init.dtype)
     eye = jnp.eye(x_init.shape[-1], dtype=x_init.dtype)
     loglik_fn = functools.partial(log_likelihood, model, y)
 
@@ -250,15 +274,15 @@ def ancestral_sample(params, prior: PriorScore, context, model: StateSpaceModel,
         u = jnp.where(l_idx == 0, x0_hat, u)
         prior_precision = precision + eye / sigma ** 2
         u, chol = kalman_tweedie(x0_hat, prior_precision, loglik_fn, model.observe, weight_fn, u, guide,
-                                 config.guidance.iterations)
+                                 config.sampler.guidance.iterations)
         k_bridge, k_post = jax.random.split(jax.random.fold_in(key, l_idx))
         x0 = resample_posterior(k_post, x0_hat, prior_precision, u, chol, loglik_fn, guide,
-                                config.guidance.proposals, config.guidance.proposal_df)
+                                config.sampler.guidance.proposals, config.sampler.guidance.proposal_df)
         rho, var = bridge(sigma, sigma_next)
         x = rho * x + (1.0 - rho) * x0 + jnp.sqrt(var) * jax.random.normal(k_bridge, x.shape, x.dtype)
         return (x, u), None
 
-    inputs = (levels[:-1], levels[1:], jnp.arange(config.reverse_steps))
+    inputs = (levels[:-1], levels[1:], jnp.arange(config.sampler.reverse_steps))
     (x, _), _ = jax.lax.scan(step, (x_init, x_init), inputs)
     return x
 
@@ -269,28 +293,28 @@ def posterior_sample(params, prior: PriorScore, context, loglik_fn, x_init, key,
     posterior ensemble ``(N, d)``.
 
     loglik_fn: ``x0 (d,) -> scalar``.  guide: scalar, 1.0 to assimilate, 0.0 to sample the prior.
-    tau: the prior inflation (default ``config.prior_inflation``).
+    tau: the prior inflation (default ``config.inflation.base``).
     """
-    tau = config.prior_inflation if tau is None else tau
-    grid = reverse_grid(config.reverse_steps, 1.0, config.t_min)
-    n_steps = config.reverse_steps
+    tau = config.inflation.base if tau is None else tau
+    grid = reverse_grid(config.sampler.reverse_steps, 1.0, config.sampler.t_min)
+    n_steps = config.sampler.reverse_steps
     is_last = jnp.arange(n_steps) == n_steps - 1
 
     def step(x, inputs):
         t, dt, last, l_idx = inputs
-        g2 = diffusion_sq(t, config.sigma_max)
-        var = marginal_std(t, config.sigma_max) ** 2
+        g2 = diffusion_sq(t, config.sampler.sigma_max)
+        var = marginal_std(t, config.sampler.sigma_max) ** 2
         score_fn = functools.partial(
             prior.score, params, context,
-            t=inflated_time(t, tau, config.sigma_max))
-        if config.guidance.mode == "none":
+            t=inflated_time(t, tau, config.sampler.sigma_max))
+        if config.sampler.guidance.mode == "none":
             s, disp = score_fn(x), 0.0
         else:
             s, grad, loglik = dps_gradient(score_fn, loglik_fn, x, var)
-            disp = guide * guidance_displacement(config.guidance, grad, loglik, g2 * dt,
+            disp = guide * guidance_displacement(config.sampler.guidance, grad, loglik, g2 * dt,
                                                  jnp.sqrt(g2 * dt))
         noise = jax.random.normal(jax.random.fold_in(key, l_idx), x.shape, x.dtype)
-        noise_on = jnp.where(last & config.denoise_last, 0.0, 1.0)
+        noise_on = jnp.where(last & config.sampler.denoise_last, 0.0, 1.0)
         x = x + g2 * dt * s + disp + noise_on * jnp.sqrt(g2 * dt) * noise
         return x, None
 
@@ -308,9 +332,10 @@ def particle_sampler(model: StateSpaceModel, prior: PriorScore, config: CSFConfi
     shards > 1 splits the particle axis over the first ``shards`` local devices with
     ``jax.shard_map`` (the reverse steps are independent per particle given the prior's context,
     which every device gets whole): for several accelerators, or one XLA host device per CPU core
-    (``XLA_FLAGS=--xla_force_host_platform_device_count=<cores>`` before importing jax). On a quiet
-    2-core CPU it gains only 4-7% (docs/benchmark.md): XLA's intra-op threads already use both
-    cores. Each shard draws its noise from ``fold_in(key, shard)``: results depend on ``shards``.
+    (``XLA_FLAGS=--xla_force_host_platform_device_count=<cores>`` before importing jax). On a CPU
+    it gains little where XLA's intra-op threads already use every core (measured on
+    docs/bench/history.md). Each shard draws its noise from ``fold_in(key, shard)``: results
+    depend on ``shards``.
     """
 
     def sample(params, context, y, x_init, start, key, guide):
@@ -342,11 +367,11 @@ def _prior_for(params, prior: PriorScore | None, network: NetworkConfig | None,
         return prior
     if params is None:
         # with the mixture, the particle components are the exact mixture already
-        if config.mixture is None:
-            return exact_mixture_prior(config.sigma_max)
-        return gaussian_prior(config.sigma_max, config.covariance)
+        if config.prior.mixture is None:
+            return exact_mixture_prior(config.sampler.sigma_max)
+        return gaussian_prior(config.sampler.sigma_max, config.prior.covariance)
     return learned_prior(network if network is not None else NetworkConfig(),
-                         config.encode_particles, config.covariance)
+                         config.prior.encode_particles, config.prior.covariance)
 
 
 class CSFStatic(NamedTuple):
@@ -372,31 +397,43 @@ def _step(model: StateSpaceModel, static: CSFStatic, params, state, y, key, time
     centers = jax.vmap(model.drift)(ens)
     prior_ens = centers + process_draws(model, k_prop, ens.shape, ens.dtype)
     context = prior.condition(params, centers, prior_ens, model.process_std)
-    guide = jnp.where((time.k > 1) | config.assimilate_first, 1.0, 0.0).astype(ens.dtype)
+    guide = jnp.where((time.k > 1) | config.sampler.assimilate_first, 1.0, 0.0).astype(ens.dtype)
     x_init, start = sampler_start(config, prior_ens, k_init, y, model, guide)
-    if config.mixture is None or not uses_kalman(config):
+    if config.prior.mixture is None or not uses_kalman(config):
         post = sample(params, context, y, x_init, start, k_rev, guide)
-        return (post, memory), StepOutput(post.mean(0), post.std(0), post)
-    if config.guidance.proposal_df is None and tail_df(model) is not None:
+        return (post, memory), _output(post, jnp.all(jnp.isfinite(prior_ens)))
+    if config.sampler.guidance.proposal_df is None and tail_df(model) is not None:
         # the proposals take the heavy tails of the model's noise (Cauchy: Student-t, 1 dof)
-        config = dataclasses.replace(config, guidance=dataclasses.replace(
-            config.guidance, proposal_df=tail_df(model)))
+        guidance = dataclasses.replace(config.sampler.guidance, proposal_df=tail_df(model))
+        config = dataclasses.replace(config, sampler=dataclasses.replace(config.sampler,
+                                                                         guidance=guidance))
         sample = particle_sampler(model, prior, config, static.shards)
-    moments = ensemble_moments(prior_ens, covariance=config.covariance)
-    odds = config.mixture.particle_logodds + memory
-    sel = mixture.select(model, config.mixture, jax.random.fold_in(key, 3), y, centers, prior_ens,
+    moments = ensemble_moments(prior_ens, covariance=config.prior.covariance)
+    odds = config.prior.mixture.particle_logodds + memory
+    sel = mixture.select(model, config.prior.mixture, jax.random.fold_in(key, 3), y, centers, prior_ens,
                          moments.cov, jnp.square(start.tau), odds, guide)
     post = sample(params, context, y, x_init, start, k_rev, guide)
     post = jnp.where((sel.kind == 1)[:, None], post, sel.draws)
-    memory, _ = mixture.next_odds(config.mixture, memory, sel.log_bf)
+    memory, _ = mixture.next_odds(config.prior.mixture, memory, sel.log_bf, sel.informed)
     info = {"particle_weight": sel.particle_weight, "shock_weight": sel.shock_weight}
-    return (post, memory), StepOutput(post.mean(0), post.std(0), post, info)
+    kept = jnp.all(jnp.isfinite(prior_ens)) & jnp.all(jnp.isfinite(moments.cov))
+    return (post, memory), _output(post, kept, info)
 
 
-CSF = Method("csf_jax.filter", _init, _step, label="CSF")
+def _output(post, kept, info=None) -> StepOutput:
+    """The step's ``StepOutput`` from the posterior ensemble ``post (N, d)``; mean and std NaN
+    where the forecast lost its numbers (``kept`` False: a member's forecast, or the prior
+    ensemble's covariance, is non-finite). The mixture's resampling drops such members, so the
+    posterior can look sane after the run has diverged; NaN here makes ``mark_nonfinite`` report
+    the step and every later one, and a concrete call raise."""
+    nan = jnp.asarray(jnp.nan, post.dtype)
+    mean = jnp.where(kept, post.mean(0), nan)
+    std = jnp.where(kept, post.std(0), nan)
+    return StepOutput(mean, std, post, {} if info is None else info)
 
 
-def csf_filter(params, obs, ensemble, *, problem: StateSpaceModel, key,
+@_checks.renamed_keywords(problem="model")
+def csf_filter(params, obs, ensemble, *, model: StateSpaceModel, key,
                prior: PriorScore | None = None, network: NetworkConfig | None = None,
                config: CSFConfig = CSFConfig(), inputs=None, return_ensembles: bool = False,
                check_finite: bool = True,
@@ -409,11 +446,11 @@ def csf_filter(params, obs, ensemble, *, problem: StateSpaceModel, key,
         ``load_pretrained``: the checked route, see ``csf_jax.trained.unpack``), raw network
         parameters ``{"encoder": ..., "score": ...}`` (only their shapes can be checked), or None:
         no network (no training needed): the exact Gaussian-mixture prior ``sum_i N(f(x_i), Q)``,
-        or with ``config.mixture`` the ensemble's own Gaussian as the ensemble component.
+        or with ``config.prior.mixture`` the ensemble's own Gaussian as the ensemble component.
       obs: (K, m) observations ``y_1 .. y_K``; float, promoted with ``ensemble`` to their common
         float dtype. NaN marks a missing entry (left out of the update); inf is an error.
       ensemble: (N, d) initial ensemble (time 0).
-      problem: the ``StateSpaceModel`` (static: hashable).
+      model: the ``StateSpaceModel`` (static: hashable).
       key: a ``jax.random.key``; same key, same result.
       prior: the prior-score source of the ensemble component (``gaussian_prior()``,
         ``exact_mixture_prior()``); by default as for params=None above, else the learned
@@ -439,7 +476,27 @@ def csf_filter(params, obs, ensemble, *, problem: StateSpaceModel, key,
       ``(obs, ensemble, key)``; there a non-finite observation or mean is not raised but reported:
       from that step on ``finite`` is False and mean and std are NaN (``mark_nonfinite``).
     """
-    check_model(problem, CSF.name)
+    return run(method(params, prior=prior, network=network, config=config, shards=shards), obs,
+               ensemble, model=model, key=key, inputs=inputs, return_ensembles=return_ensembles,
+               check_finite=check_finite, progress=progress)
+
+
+class CSFSpec(NamedTuple):
+    """CSF's settings before the model is known: the config, the prior-score source (None: chosen
+    from the params), the raw params' network config, the devices the particles are split over."""
+
+    config: CSFConfig
+    prior: PriorScore | None
+    network: NetworkConfig | None
+    shards: int
+
+
+def method(params=None, *, prior: PriorScore | None = None, network: NetworkConfig | None = None,
+           config: CSFConfig = CSFConfig(), shards: int = 1) -> Method:
+    """CSF as a ``Method`` for ``csf_jax.run`` (arguments: ``csf_jax.filter``). What can be checked
+    without the model is checked here; the trained prior against the model, when it runs."""
+    if not isinstance(config, CSFConfig):
+        raise TypeError(f"csf_jax.filter: config must be a CSFConfig, got {type(config).__name__}")
     if prior is not None and params is not None and prior.name != "learned":
         raise ValueError(f"csf_jax.filter: both a trained prior (params) and prior="
                          f"{prior.name!r} given; the {prior.name} prior would ignore the "
@@ -448,29 +505,73 @@ def csf_filter(params, obs, ensemble, *, problem: StateSpaceModel, key,
         raise ValueError("csf_jax.filter: both a TrainedPrior and prior= given; the TrainedPrior "
                          "brings its own learned prior and network: leave prior= out (or pass "
                          "its .params with network= and prior=)")
-    if params is not None and not isinstance(params, trained.TrainedPrior) and prior is None \
+    if params is not None and not isinstance(params, trained.TrainedPrior) and prior is None\
             and network is None:
         raise ValueError("csf_jax.filter: raw params need network= (the NetworkConfig they were "
                          "trained with: a Gaussian-base and a whole-score network have the same "
                          "shapes, so the params cannot tell); or pass the TrainedPrior whole "
                          "(csf_jax.load_prior, csf_jax.load_pretrained)")
-    params, network = trained.unpack(params, problem, network)
-    prior = _prior_for(params, prior, network, config)
+    if isinstance(shards, bool) or not isinstance(shards, int) or shards < 1:
+        raise ValueError(f"csf_jax.filter: shards must be a positive int dividing the number of "
+                         f"particles, got {shards!r}")
+    return Method(CSF, CSFSpec(config, prior, network, shards), params)
+
+
+def _bind(model: StateSpaceModel, spec: CSFSpec, params, ensemble):
+    """The trained prior checked against ``model``, the prior-score source chosen: the driver's
+    ``CSFStatic`` and raw params."""
+    check_model(model, CSF.name)
+    config, shards = spec.config, spec.shards
+    params, network = trained.unpack(params, model, spec.network)
+    prior = _prior_for(params, spec.prior, network, config)
     n = jnp.shape(ensemble)[-2] if jnp.ndim(ensemble) >= 2 else 0
-    if isinstance(shards, bool) or not isinstance(shards, int) or shards < 1 or (n and n % shards):
+    if n and n % shards:
         raise ValueError(f"csf_jax.filter: shards must be a positive int dividing the number of "
                          f"particles N={n}, got {shards!r}")
-    if prior.name == "exact_mixture" and not is_isotropic(problem):
+    _check_combination(model, config, prior, spec.prior is None, network)
+    if prior.name == "exact_mixture" and not is_isotropic(model):
         raise ValueError(f"csf_jax.filter: the exact mixture prior needs i.i.d. process noise, but "
-                         f"model {problem.name!r} has process_noise {problem.process_noise.name!r}; "
+                         f"model {model.name!r} has process_noise {model.process_noise.name!r}; "
                          f"pass a trained prior or prior=csf_jax.gaussian_prior()")
     if prior.name == "learned":
         if params is None:
             raise ValueError("csf_jax.filter: a learned prior needs params (got None); pass trained "
                              "params, or params=None without prior= for the Gaussian prior")
-        networks.check_params(params, network or NetworkConfig(), problem.dim,
+        networks.check_params(params, network or NetworkConfig(), model.dim,
                               name="csf_jax.filter: params")
         _checks.check_sigma_max(network or NetworkConfig(), config, "csf_jax.filter")
-    return run(CSF, obs, ensemble, model=problem, key=key, config=CSFStatic(config, prior, shards),
-               params=params, inputs=inputs, return_ensembles=return_ensembles,
-               check_finite=check_finite, progress=progress)
+    return model, CSFStatic(config, prior, shards), params, ensemble
+
+
+def _check_combination(model: StateSpaceModel, config: CSFConfig, prior: PriorScore,
+                       built: bool, network: NetworkConfig | None) -> None:
+    """Refuse the settings the run would ignore, each in one line naming the fields.
+
+    * ``MixtureConfig.particles`` on a model whose ``ProcessNoise`` has no covariance: the
+      particle components ``N(f(x_i), Q)`` need Q, and estimating it from the sampler's draws
+      would be silently random (and meaningless for a noise without a variance): the user gives
+      Q or switches the components off.
+    * a covariance estimator other than the sample one where nothing uses the ensemble's
+      Gaussian: a DPS mode (Euler-Maruyama) reads the ensemble through the prior score alone, so
+      the estimator acts only on a prior built here from it (a Gaussian-base learned prior;
+      ``built``: the prior came from ``_prior_for``, not ``prior=``).
+    """
+    mix = config.prior.mixture
+    noise = model.process_noise
+    if mix is not None and mix.particles and noise is not None and noise.covariance is None:
+        raise ValueError(f"csf_jax.filter: CSFConfig.prior.mixture.particles needs the process "
+                         f"noise covariance Q, but model {model.name!r} has ProcessNoise "
+                         f"{noise.name!r} with covariance=None; give ProcessNoise(covariance=Q) "
+                         f"or use MixtureConfig(particles=False)")
+    estimator = config.prior.covariance.estimator
+    gaussian_base = (built and prior.name == "learned"
+                     and (network or NetworkConfig()).base == "gaussian")
+    if estimator != "sample" and not uses_kalman(config) and not gaussian_base:
+        raise ValueError(f"csf_jax.filter: CSFConfig.prior.covariance ({estimator!r}) has no "
+                         f"effect with CSFConfig.sampler.guidance.mode="
+                         f"{config.sampler.guidance.mode!r} and the {prior.name} prior (only the "
+                         f"'kalman' mode and a Gaussian-base learned prior use it); use "
+                         f"mode='kalman' or the sample covariance")
+
+
+CSF = Kernel("csf_jax.filter", _init, _step, label="CSF", bind=_bind)

@@ -1,31 +1,40 @@
-"""The one driver behind every filter: a filter supplies ``init`` and ``step``; the driver owns the
-rest.
+"""The one driver behind every filter: ``run(method, obs, ensemble, model=, key=)``.
 
-    run(method, obs, state0, model=, key=, config=, params=, inputs=)
+A filter is a ``Method``: its ``Kernel`` (``init`` and ``step``, module-level functions), its
+static ``config`` and its array-valued ``params``, made by the filter module's ``method(...)``
+builder (``csf_jax.methods``). The driver owns the rest:
+
+    run(method, obs, state0, model=, key=, inputs=)
       checks (model, shapes, dtypes, inf, keys, inputs), promotion to one float dtype (at least
       float32), then R and Q positive definite in it and drift/observe of the right shapes,
       with progress: a line before the first compilation and its time after,
       init -> one jitted lax.scan over y_1 .. y_K:
           model bound to the step (time index k, input u_k: ``ssm.at_step``), progress callback,
           state, out = step(model_k, config, params, state, y_k, key_k, step_k)
-      -> mark_nonfinite -> FilterResult, FloatingPointError on a diverged concrete run.
+      -> mark_nonfinite -> FilterResult, FloatingPointError on a diverged concrete run, and a
+         RuntimeWarning when a concrete run's particle weights collapse (``FilterResult.ess``).
 
-A ``Method`` is a NamedTuple of module-level functions, so it is hashable and a jitted scan is
-compiled once per (method, model, config). ``config`` is the method's static settings (hashable);
-``params`` its array-valued ones (network weights, an inflation factor), traced. NaN in ``obs``
+A ``Kernel`` is a NamedTuple of module-level functions, so it is hashable and a jitted scan is
+compiled once per (kernel, model, config). ``config`` is the method's static settings (hashable);
+``params`` its array-valued ones (network weights, an inflation factor), traced: a ``Method`` is a
+pytree whose only leaves are its params, so ``jax.jit`` and ``jax.vmap`` take it as an argument. NaN in ``obs``
 means 'not observed' and reaches ``step`` as is: each method leaves it out of its update.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import os
 import sys
 import time
+import warnings
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from csf_jax import _checks
 from csf_jax.filters.result import FilterResult, mark_nonfinite
@@ -44,8 +53,10 @@ class StepOutput(NamedTuple):
 
     mean, std: (d,) the filtered mean and spread of ``x_k``.
     ensemble: (N, d) the posterior ensemble (kept only with ``return_ensembles``), or None.
-    info: dict of per-step scalars (the particle filter's ``ess``; CSF's bandwidth and shock
-      weight), stacked over steps into ``FilterResult.info``.
+    info: dict of per-step diagnostics, stacked over steps into ``FilterResult.info`` (which
+      lists what each filter reports): CSF's mixture weights ``particle_weight`` and
+      ``shock_weight`` (scalars), the Kalman filter's ``cov`` (d, d); the particle filter's
+      ``ess`` (a scalar) goes to ``FilterResult.ess`` instead.
     """
 
     mean: jax.Array
@@ -54,8 +65,8 @@ class StepOutput(NamedTuple):
     info: dict = {}
 
 
-class Method(NamedTuple):
-    """A filter as the driver runs it.
+class Kernel(NamedTuple):
+    """A filter's functions, as the driver runs them.
 
     name: the user-facing name, for messages (``"particle_filter"``).
     init: ``(model, config, params, state0, key) -> (state, scan_key)``: the carry at time 0 and the
@@ -67,6 +78,12 @@ class Method(NamedTuple):
       (a non-additive likelihood without a Gaussian stand-in, say), at the boundary.
     ensemble: whether ``state0`` is an ``(N, d)`` ensemble, checked as one.
     label: the short name in progress lines ("CSF", "EnKF"); default ``name``.
+    bind: optional ``(model, config, params, state0) -> (model, config, params, state0)``, run
+      first at the boundary: what depends on the model (a trained prior checked against it, the
+      Kalman filter's matrices read from it).
+    runner: optional ``(method, obs, ensemble, model=, key=, inputs=, return_ensembles=,
+      check_finite=, progress=) -> FilterResult`` for a filter with a scan of its own (the sharded
+      LETKF places its arrays on a device mesh); ``run`` hands the call over whole.
     """
 
     name: str
@@ -75,15 +92,92 @@ class Method(NamedTuple):
     check: Callable[[StateSpaceModel, Any], None] = lambda model, config: None
     ensemble: bool = True
     label: str = ""
+    bind: Callable[..., tuple] | None = None
+    runner: Callable[..., FilterResult] | None = None
 
 
-def run(method: Method, obs, state0, *, model: StateSpaceModel, key, config=None, params=None,
-        inputs=None, return_ensembles: bool = False, check_finite: bool = True,
+@functools.partial(jax.tree_util.register_dataclass, data_fields=["params"],
+                   meta_fields=["kernel", "config"])
+@dataclasses.dataclass(frozen=True)
+class Method:
+    """A filter ready to run: ``csf_jax.run(method, obs, ensemble, model=, key=)``.
+
+    Made by a filter module's builder (``csf_jax.methods``: ``methods.csf(...)``,
+    ``methods.enkf()``, ...). A pytree whose leaves are ``params`` alone, so it passes through
+    ``jax.jit`` and ``jax.vmap`` (``kernel`` and ``config`` are static).
+
+    Attributes:
+      kernel: the filter's ``Kernel`` (its init and step).
+      config: its static settings (hashable): a change recompiles.
+      params: its array-valued settings (network weights, an inflation factor): traced.
+    """
+
+    kernel: Kernel
+    config: Any = None
+    params: Any = None
+
+    @property
+    def name(self) -> str:
+        """The filter's user-facing name."""
+        return self.kernel.name
+
+
+def refuse_settings(name: str, settings: tuple, named: dict) -> None:
+    """The one-line TypeError of a builder whose filter has no settings (``methods.pf()``,
+    ``methods.kalman()``) when it is given some: ``settings`` positional, ``named`` keywords."""
+    if not settings and not named:
+        return
+    got = ", ".join([type(v).__name__ for v in settings] + [f"{k}=" for k in named])
+    raise TypeError(f"{name}: takes no settings (it has no config class), got {got}")
+
+
+def run(method: Method, obs, ensemble, *, model: StateSpaceModel, key, inputs=None,
+        return_ensembles: bool = False, check_finite: bool = True,
         progress: Callable[[jax.Array], None] | None = None) -> FilterResult:
+    """Filter ``obs`` with ``method``: the one entry point behind every filter.
+
+    Args:
+      method: a ``Method`` from a builder of ``csf_jax.methods``.
+      obs: (K, m) observations ``y_1 .. y_K``; float, promoted with ``ensemble`` to their common
+        float dtype (at least float32). NaN marks a missing entry; inf is an error.
+      ensemble: (N, d) initial ensemble at time 0 (None for the Kalman filter, which starts from
+        the model's own initial law).
+      model: the ``StateSpaceModel`` (static: hashable).
+      key: a ``jax.random.key``; same key, same result.
+      inputs: a time-varying model's per-step inputs (a pytree, leading axis K), or None.
+      return_ensembles: also return the (K, N, d) posterior ensembles.
+      check_finite: when called outside jit/vmap, raise FloatingPointError if the filter diverged.
+      progress: optional host callback ``k -> None`` at the start of every filter step; a
+        concrete call with it also says on stderr when it compiles, and how long that took.
+
+    Returns:
+      ``FilterResult``: mean and std (K, d), ``finite`` (K,), the method's ``info``. Under
+      ``jax.jit``/``jax.vmap`` a non-finite step is reported (``finite`` False, mean and std
+      NaN from there on), not raised.
+    """
+    if not isinstance(method, Method):
+        raise TypeError(f"csf_jax.run: method must be a csf_jax.Method (from a builder of "
+                        f"csf_jax.methods, e.g. csf_jax.methods.enkf()), got "
+                        f"{type(method).__name__}")
+    if method.kernel.runner is not None:
+        return method.kernel.runner(method, obs, ensemble, model=model, key=key, inputs=inputs,
+                                    return_ensembles=return_ensembles, check_finite=check_finite,
+                                    progress=progress)
+    return run_kernel(method.kernel, obs, ensemble, model=model, key=key, config=method.config,
+                      params=method.params, inputs=inputs, return_ensembles=return_ensembles,
+                      check_finite=check_finite, progress=progress)
+
+
+def run_kernel(method: Kernel, obs, state0, *, model: StateSpaceModel, key, config=None,
+               params=None, inputs=None, return_ensembles: bool = False,
+               check_finite: bool = True,
+               progress: Callable[[jax.Array], None] | None = None) -> FilterResult:
     """Run ``method`` over ``obs (K, m)`` from ``state0`` (an ``(N, d)`` ensemble for the ensemble
     filters); see the module docstring. ``inputs``: the per-step inputs of a time-varying model,
     a pytree whose leaves have leading axis K."""
     name = method.name
+    if method.bind is not None:
+        model, config, params, state0 = method.bind(model, config, params, state0)
     check_model(model, name)
     if method.ensemble:
         _checks.check_filter_inputs(obs, state0, model, name=name)
@@ -100,9 +194,48 @@ def run(method: Method, obs, state0, *, model: StateSpaceModel, key, config=None
     if progress is not None:
         _announce_compile(static, args)
     result = mark_nonfinite(_scan(*static, *args), obs)
+    warn_if_collapsed(name, result.ess)
     if check_finite:
         _checks.check_result_finite(name, result)
     return result
+
+
+COLLAPSED_ESS = 1.5
+"""The effective sample size below which a filter's weights count as collapsed: one particle
+carries (nearly) all the weight, so the step's mean is that particle and its spread is lost."""
+
+
+def warn_if_collapsed(name: str, ess) -> None:
+    """After a concrete run: one ``RuntimeWarning`` naming the filter and the first step whose
+    effective sample size ``ess (K,)`` fell below ``COLLAPSED_ESS``, and what to do about it.
+    Silent for None (a filter without weights) and under jit/vmap (a traced ``ess``)."""
+    if ess is None or not _checks.is_concrete(ess):
+        return
+    ess = np.asarray(ess)
+    low = ess < COLLAPSED_ESS  # NaN (a diverged step) compares False
+    if not low.any():
+        return
+    k = int(np.argmax(low))
+    warnings.warn(
+        f"{name}: the particle weights collapsed onto one particle at step {k + 1} of "
+        f"{ess.shape[0]} (effective sample size {float(ess[k]):.2f}; below "
+        f"{COLLAPSED_ESS} at {int(low.sum())} step(s)), so the filtered mean there is a single "
+        f"particle; use more particles, a wider likelihood (a larger observation noise), or "
+        f"another filter (csf_jax.filter, csf_jax.ensemble_kalman_filter)",
+        RuntimeWarning, stacklevel=_caller_level())
+
+
+_PACKAGE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _caller_level() -> int:
+    """The ``stacklevel`` of the first frame outside csf_jax: a warning points at the user's call
+    whichever route (a named filter, ``run``) led to it."""
+    frame, level = sys._getframe(1), 1
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(
+            _PACKAGE + os.sep):
+        frame, level = frame.f_back, level + 1
+    return level
 
 
 _COMPILED: set = set()
@@ -139,7 +272,7 @@ def _announce_compile(static: tuple, args: tuple) -> None:
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4))
-def _scan(method: Method, model: StateSpaceModel, config, return_ensembles: bool, progress,
+def _scan(method: Kernel, model: StateSpaceModel, config, return_ensembles: bool, progress,
           params, obs, state0, key, inputs) -> FilterResult:
     K = obs.shape[0]
     state, scan_key = method.init(model, config, params, state0, key)

@@ -12,18 +12,22 @@ replaced by the identity's, so the gain acts on the observed entries alone.
 
 from __future__ import annotations
 
+import numbers
+
 import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
 
-from csf_jax._checks import is_concrete
-from csf_jax.filters.driver import Method, StepOutput, run
+from csf_jax import _linalg
+from csf_jax._checks import is_concrete, renamed_keywords
+from csf_jax.filters.driver import Kernel, Method, StepOutput, run
 from csf_jax.filters.result import FilterResult
 from csf_jax.ssm import StateSpaceModel, gaussian_standin, is_additive, observed, propagate
 
 
-def ensemble_kalman_filter(obs, ensemble, *, problem: StateSpaceModel, key, inputs=None,
+@renamed_keywords(problem="model")
+def ensemble_kalman_filter(obs, ensemble, *, model: StateSpaceModel, key, inputs=None,
                            return_ensembles: bool = False, inflation=1.0,
                            check_finite: bool = True, progress=None) -> FilterResult:
     """Run the stochastic EnKF.
@@ -32,7 +36,7 @@ def ensemble_kalman_filter(obs, ensemble, *, problem: StateSpaceModel, key, inpu
       obs: (K, m) observations ``y_1 .. y_K``; float, promoted with ``ensemble`` to their common
         float dtype. NaN marks a missing entry (left out of the update); inf is an error.
       ensemble: (N, d) ensemble at time 0.
-      problem: the state-space model (static: a hashable NamedTuple). A non-additive
+      model: the state-space model (static: a hashable NamedTuple). A non-additive
         ``Likelihood`` needs its Gaussian stand-in (``mean`` and ``variance``).
       key: a JAX PRNG key; the same key gives the same result.
       inputs: a time-varying model's per-step inputs (leading axis K), or None.
@@ -47,17 +51,44 @@ def ensemble_kalman_filter(obs, ensemble, *, problem: StateSpaceModel, key, inpu
       mean and std (N-1 denominator) of the analysis ensemble. Under jit/vmap, mean and std are
       NaN and ``finite`` False from a non-finite step on (``mark_nonfinite``).
     """
+    return run(method(inflation), obs, ensemble, model=model, key=key, inputs=inputs,
+               return_ensembles=return_ensembles, check_finite=check_finite, progress=progress)
+
+
+def method(inflation=1.0) -> Method:
+    """The stochastic EnKF as a ``Method`` for ``csf_jax.run``.
+
+    Args:
+      inflation: multiplicative factor on the forecast anomalies (1.0 = none); a positive scalar
+        (a Python number or a 0-d array), traced (a sweep over it compiles once). Anything else
+        (a config object, a bool) is a TypeError.
+    """
+    if not _is_real(inflation):
+        raise TypeError(f"ensemble_kalman_filter: inflation must be a positive number (a float or "
+                        f"a scalar array), got {type(inflation).__name__}; the EnKF takes no "
+                        f"config object")
     if jnp.ndim(inflation) != 0:
         raise ValueError(f"ensemble_kalman_filter: inflation must be a scalar, got shape "
                          f"{jnp.shape(inflation)}")
     if is_concrete(inflation) and not (np.isfinite(inflation) and float(inflation) > 0):
         raise ValueError(f"ensemble_kalman_filter: inflation must be positive and finite, got "
                          f"{inflation}")
-    return run(ENSEMBLE_KALMAN_FILTER, obs, ensemble, model=problem, key=key,
-               params=jnp.asarray(inflation), inputs=inputs, return_ensembles=return_ensembles,
-               check_finite=check_finite, progress=progress)
+    return Method(ENSEMBLE_KALMAN_FILTER, None, jnp.asarray(inflation))
 
 
+def _is_real(value) -> bool:
+    """A real number: a Python int or float, or an array (or tracer) of an int or float dtype;
+    not a bool."""
+    if isinstance(value, (bool, np.bool_)):
+        return False
+    if isinstance(value, numbers.Real):
+        return True
+    dtype = getattr(value, "dtype", None)
+    return dtype is not None and (jnp.issubdtype(dtype, jnp.floating)
+                                  or jnp.issubdtype(dtype, jnp.integer))
+
+
+@_linalg.precise
 def enkf_analysis(key, forecast, y, model: StateSpaceModel):
     """Perturbed-observation update of ``forecast (N, d)`` on ``y (m,)``; returns ``(N, d)``.
 
@@ -114,5 +145,5 @@ def check_standin(name: str):
     return check
 
 
-ENSEMBLE_KALMAN_FILTER = Method("ensemble_kalman_filter", _init, _step,
+ENSEMBLE_KALMAN_FILTER = Kernel("ensemble_kalman_filter", _init, _step,
                                 check_standin("ensemble_kalman_filter"), label="EnKF")

@@ -57,7 +57,7 @@ import jax
 import jax.numpy as jnp
 
 from csf_jax import _checks
-from csf_jax.filters.driver import Method, StepOutput, run
+from csf_jax.filters.driver import Kernel, Method, StepOutput, run
 from csf_jax.filters.result import FilterResult
 from csf_jax.ssm import StateSpaceModel, log_likelihood, propagate
 
@@ -67,24 +67,25 @@ class ENSFConfig:
     """EnSF's settings; the defaults are those of the authors' Lorenz-96 code (github
     zezhongzhang/EnSF), tuned there at d = 100, N = 20 (``fine_tune_EnSF``, best RMSE).
 
-    reverse_steps: Euler-Maruyama steps L of the reverse SDE per analysis. 200: the d = 100
-      tuning runs (``Nt_SDE``; their d = 10^6 runs use 500, the paper's first script 100).
-    eps_alpha: ``alpha_1``, the signal kept at t = 1 (``alpha_t = 1 - (1 - eps_alpha) t``). 0.5:
-      their tuned ``eps_a`` (best of 0.001 .. 0.9 at d = 100; the paper's first script 0.05).
-    eps_beta: ``beta_0^2``, the noise variance left at t = 0 (``beta_t^2 = eps_beta + (1 -
-      eps_beta) t``): the kernel variance of the prior's mixture at t = 0. 0.025: their tuned
-      ``eps_b`` (best of 0.001 .. 0.225 at d = 100).
-    batch: members J in each particle's Monte-Carlo score (the paper's mini-batch); None: all N
-      (the full estimator). Particle i uses members i, i+1, .., i+J-1 (mod N), fixed over the
-      reverse steps. 1 reproduces the released scripts, which score particle i against member i.
-    kernel_var: extra variance kappa of each mixture component at t = 0 (``v_t = alpha_t^2 kappa +
-      beta_t^2``). 0.0: their ``gm_var_ratio`` in every run.
-    inflation: multiplicative factor on the forecast anomalies before the analysis. 1.0: their
-      ``inflation`` in every run.
-    score_max: the posterior score is clipped entrywise to ``[-score_max, score_max]``. 1000: the
-      ``score_max`` of their ``post_score``.
-    clip: clip the forecast members to ``[-clip, clip]`` (a guard against diverging members), or
-      None. None here; their Lorenz-96 scripts clip at 50 (``clip_tol``) after every RK4 step.
+    Attributes:
+      reverse_steps: Euler-Maruyama steps L of the reverse SDE per analysis. 200: the d = 100
+        tuning runs (``Nt_SDE``; their d = 10^6 runs use 500, the paper's first script 100).
+      eps_alpha: ``alpha_1``, the signal kept at t = 1 (``alpha_t = 1 - (1 - eps_alpha) t``). 0.5:
+        their tuned ``eps_a`` (best of 0.001 .. 0.9 at d = 100; the paper's first script 0.05).
+      eps_beta: ``beta_0^2``, the noise variance left at t = 0 (``beta_t^2 = eps_beta + (1 -
+        eps_beta) t``): the kernel variance of the prior's mixture at t = 0. 0.025: their tuned
+        ``eps_b`` (best of 0.001 .. 0.225 at d = 100).
+      batch: members J in each particle's Monte-Carlo score (the paper's mini-batch); None: all N
+        (the full estimator). Particle i uses members i, i+1, .., i+J-1 (mod N), fixed over the
+        reverse steps. 1 reproduces the released scripts, which score particle i against member i.
+      kernel_var: extra variance kappa of each mixture component at t = 0 (``v_t = alpha_t^2 kappa +
+        beta_t^2``). 0.0: their ``gm_var_ratio`` in every run.
+      inflation: multiplicative factor on the forecast anomalies before the analysis. 1.0: their
+        ``inflation`` in every run.
+      score_max: the posterior score is clipped entrywise to ``[-score_max, score_max]``. 1000: the
+        ``score_max`` of their ``post_score``.
+      clip: clip the forecast members to ``[-clip, clip]`` (a guard against diverging members), or
+        None. None here; their Lorenz-96 scripts clip at 50 (``clip_tol``) after every RK4 step.
 
     The damping ``h(t) = 1 - t`` is fixed (their ``damp_fn`` in every run).
     """
@@ -232,10 +233,11 @@ def _step(model: StateSpaceModel, static: ENSFStatic, params: ENSFParams, ensemb
     return post, StepOutput(post.mean(0), post.std(0, ddof=1), post)
 
 
-ENSF = Method("ensf", _init, _step, label="EnSF")
+ENSF = Kernel("ensf", _init, _step, label="EnSF")
 
 
-def ensf(obs, ensemble, *, problem: StateSpaceModel, key, config: ENSFConfig = ENSFConfig(),
+@_checks.renamed_keywords(problem="model")
+def ensf(obs, ensemble, *, model: StateSpaceModel, key, config: ENSFConfig = ENSFConfig(),
          inputs=None, return_ensembles: bool = False, check_finite: bool = True,
          progress: Callable[[jax.Array], None] | None = None) -> FilterResult:
     """Run the ensemble score filter (EnSF).
@@ -244,7 +246,7 @@ def ensf(obs, ensemble, *, problem: StateSpaceModel, key, config: ENSFConfig = E
       obs: (K, m) observations ``y_1 .. y_K``; float, promoted with ``ensemble`` to their common
         float dtype. NaN marks a missing entry (its likelihood term drops out); inf is an error.
       ensemble: (N, d) ensemble at time 0 (N >= 2; N >= ``config.batch``).
-      problem: the ``StateSpaceModel`` (static: hashable). Any observation model whose
+      model: the ``StateSpaceModel`` (static: hashable). Any observation model whose
         ``log_likelihood`` is differentiable in the state (additive noise or a ``Likelihood``).
       key: a ``jax.random.key`` (process noise and the reverse SDE); same key, same result.
       config: ``ENSFConfig`` (defaults: EnSF's). The float settings are traced, so a sweep over
@@ -261,16 +263,25 @@ def ensf(obs, ensemble, *, problem: StateSpaceModel, key, config: ENSFConfig = E
       over ``(obs, ensemble, key)``; there mean and std are NaN and ``finite`` False from a
       non-finite step on (``mark_nonfinite``).
     """
+    return run(method(config), obs, ensemble, model=model, key=key, inputs=inputs,
+               return_ensembles=return_ensembles, check_finite=check_finite, progress=progress)
+
+
+def method(config: ENSFConfig = ENSFConfig()) -> Method:
+    """EnSF as a ``Method`` for ``csf_jax.run``; ``config``: ``ENSFConfig`` (its float settings
+    traced, ``reverse_steps``, ``batch`` and ``clip`` static)."""
     if not isinstance(config, ENSFConfig):
         raise TypeError(f"ensf: config must be an ENSFConfig, got {type(config).__name__}")
-    n = jnp.shape(ensemble)[0] if jnp.ndim(ensemble) == 2 else None
-    if config.batch is not None and n is not None and config.batch > n:
-        raise ValueError(f"ensf: ENSFConfig.batch ({config.batch}) exceeds the ensemble's "
-                         f"N={n} members")
     params = ENSFParams(*(jnp.asarray(float(getattr(config, f)))
                           for f in ENSFParams._fields))
     static = ENSFStatic(int(config.reverse_steps), config.batch,
                         None if config.clip is None else float(config.clip))
-    return run(ENSF, obs, ensemble, model=problem, key=key, config=static, params=params,
-               inputs=inputs, return_ensembles=return_ensembles, check_finite=check_finite,
-               progress=progress)
+    return Method(ENSF._replace(bind=_bind), static, params)
+
+
+def _bind(model, static: ENSFStatic, params, ensemble):
+    n = jnp.shape(ensemble)[0] if jnp.ndim(ensemble) == 2 else None
+    if static.batch is not None and n is not None and static.batch > n:
+        raise ValueError(f"ensf: ENSFConfig.batch ({static.batch}) exceeds the ensemble's "
+                         f"N={n} members")
+    return model, static, params, ensemble

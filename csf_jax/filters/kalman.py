@@ -16,23 +16,28 @@ import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 
-from csf_jax import _checks
-from csf_jax.filters.driver import Method, StepOutput, run
+from csf_jax import _checks, _linalg
+from csf_jax.filters.driver import Kernel, Method, StepOutput, refuse_settings, run_kernel
 from csf_jax.filters.result import FilterResult
 from csf_jax.problems.linear import LinearGaussian, linear_source, to_model
 from csf_jax.ssm import StateSpaceModel
 
 
-def kalman_filter(obs, *, lg: LinearGaussian | StateSpaceModel, progress=None) -> FilterResult:
+@_checks.renamed_keywords(lg="model")
+def kalman_filter(obs, *, model: LinearGaussian | StateSpaceModel, progress=None) -> FilterResult:
     """Filtered means and stds of ``x_1 .. x_K`` given ``obs (K, m) = y_1 .. y_K`` (NaN: missing).
 
-    lg: the ``LinearGaussian`` (``csf_jax.problems.linear.linear_gaussian``), or the
-      ``StateSpaceModel`` that ``to_model`` made of one (what the ensemble filters take).
-    Returns ``FilterResult(mean (K, d), std (K, d), finite (K,))`` with
-    ``std = sqrt(diag(P_{k|k}))``; no ensembles, no ESS. Use ``kalman_filter_cov`` for the full
-    covariances.
+    Args:
+      obs: (K, m) observations ``y_1 .. y_K``; NaN marks a missing entry.
+      model: the ``LinearGaussian`` (``csf_jax.problems.linear.linear_gaussian``), or the
+        ``StateSpaceModel`` that ``to_model`` made of one (what the ensemble filters take).
+      progress: optional host callback ``k -> None`` at every filter step.
+
+    Returns:
+      ``FilterResult``: mean (K, d), std (K, d) with ``std = sqrt(diag(P_{k|k}))``, finite (K,);
+        no ensembles, no ESS. Use ``kalman_filter_cov`` for the full covariances.
     """
-    result = _run(obs, lg, progress)
+    result = _run(obs, model, progress)
     return result._replace(info=None)
 
 
@@ -50,12 +55,12 @@ def as_linear_gaussian(lg, name: str = "kalman_filter") -> LinearGaussian:
     if isinstance(lg, StateSpaceModel):
         source = linear_source(lg)
         if source is None:
-            raise TypeError(f"{name}: lg={lg.name!r} is a StateSpaceModel not made by "
+            raise TypeError(f"{name}: model={lg.name!r} is a StateSpaceModel not made by "
                             f"to_model(linear_gaussian(...)), so it has no matrices to read; pass "
                             f"the LinearGaussian (csf_jax.problems.linear.linear_gaussian) or "
                             f"to_model of one")
         return source
-    raise TypeError(f"{name}: lg must be a LinearGaussian (csf_jax.problems.linear."
+    raise TypeError(f"{name}: model must be a LinearGaussian (csf_jax.problems.linear."
                     f"linear_gaussian) or to_model of one, got {type(lg).__name__}")
 
 
@@ -67,14 +72,31 @@ def _run(obs, lg, progress, check_finite: bool = False) -> FilterResult:
     params = tuple(jnp.asarray(a, dtype) for a in (lg.A, lg.H, lg.process_cov(), lg.obs_cov()))
     state0 = (jnp.asarray(lg.m0, dtype), jnp.asarray(lg.p0_std, dtype) ** 2
               * jnp.eye(lg.dim, dtype=dtype))
-    return run(KALMAN, obs, state0, model=to_model(lg), key=jax.random.key(0), params=params,
-               check_finite=check_finite, progress=progress)
+    return run_kernel(KALMAN, obs, state0, model=to_model(lg), key=jax.random.key(0),
+                      params=params, check_finite=check_finite, progress=progress)
+
+
+def method(*settings, **named) -> Method:
+    """The exact Kalman filter as a ``Method``: ``csf_jax.run(method(), obs, None, model=lg,
+    key=key)`` with ``lg`` a ``LinearGaussian`` or ``to_model`` of one (the ensemble and the key
+    are not used: it starts from the model's own initial law). It has no settings: any argument
+    (a config object, say) is a TypeError."""
+    refuse_settings("kalman_filter", settings, named)
+    return Method(KALMAN._replace(runner=_run_method))
+
+
+def _run_method(method, obs, ensemble, *, model, key, inputs=None, return_ensembles=False,
+                check_finite=True, progress=None) -> FilterResult:
+    if inputs is not None or return_ensembles:
+        raise ValueError("kalman_filter: takes no inputs and has no ensembles to return")
+    return _run(obs, model, progress, check_finite)._replace(info=None)
 
 
 def _init(model, config, params, state0, key):
     return state0, key
 
 
+@_linalg.precise
 def _step(model, config, params, state, y, key, time):
     """Predict with ``A, Q`` and update on ``y (m,)`` with ``H, R``; state ``(mean (d,), cov)``."""
     A, H, Q, R = params
@@ -96,4 +118,4 @@ def _step(model, config, params, state, y, key, time):
     return (mean, cov), StepOutput(mean, std, None, {"cov": cov})
 
 
-KALMAN = Method("kalman_filter", _init, _step, ensemble=False, label="Kalman")
+KALMAN = Kernel("kalman_filter", _init, _step, ensemble=False, label="Kalman")

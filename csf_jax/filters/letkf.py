@@ -27,7 +27,7 @@ import numpy as np
 
 from csf_jax import _checks
 from csf_jax.covariance import gaspari_cohn
-from csf_jax.filters.driver import Method, StepOutput, run
+from csf_jax.filters.driver import Kernel, Method, StepOutput, run
 from csf_jax.filters.enkf import check_standin
 from csf_jax.filters.result import FilterResult
 from csf_jax.ssm import (
@@ -43,8 +43,10 @@ from csf_jax.ssm import (
 class Localization(NamedTuple):
     """Where the state sites and the observations sit: hashable tuples of floats.
 
-    state: (d,) site positions.  obs: (m,) observation positions.  period: the ring's length
-    (distances wrap), or None for a line.
+    Attributes:
+      state: (d,) site positions.
+      obs: (m,) observation positions.
+      period: the ring's length (distances wrap), or None for a line.
     """
 
     state: tuple
@@ -120,8 +122,9 @@ def sensor_sites(model: StateSpaceModel, probe) -> np.ndarray | None:
 
 @functools.lru_cache(maxsize=256)
 def _model_sensor_sites(model: StateSpaceModel) -> np.ndarray | None:
-    """``sensor_sites`` at the model's own probe state, once per model (two Jacobian-vector
-    products per call would cost as much as an analysis at d = 40)."""
+    """``sensor_sites`` at the model's own probe state, once per model (the probe's
+    Jacobian-vector products, repeated on every call, would cost about as much as a small model's
+    whole analysis)."""
     return sensor_sites(model, _probe(model))
 
 
@@ -181,7 +184,8 @@ def local_obs(loc: Localization, radius: float):
     ``weight (d, W)`` float (0 pads sites with fewer than W). In reach means a positive taper;
     they are ordered by decreasing taper, ties by observation index. Above ``DENSE_MAX`` the
     candidates come from a search of the sorted positions, in ``O((d + m) log m + d W)`` memory
-    and time, where the dense form would build a d x m distance array (75 GiB at d = m = 10^5)."""
+    and time, where the dense form would build a d x m distance array (10^10 entries at
+    d = m = 10^5)."""
     wraps = loc.period is not None and 4.0 * radius >= float(loc.period)
     if len(loc.state) * len(loc.obs) > DENSE_MAX and not wraps:
         return _sparse_local_obs(loc, radius)
@@ -228,8 +232,12 @@ def _sparse_local_obs(loc: Localization, radius: float):
 
 @dataclasses.dataclass(frozen=True)
 class LETKFConfig:
-    """radius: Gaspari-Cohn half-width in site units (support 2 radius).  inflation:
-    multiplicative factor on the background anomalies (>= 1 typically)."""
+    """The LETKF's localisation and inflation.
+
+    Attributes:
+      radius: Gaspari-Cohn half-width in site units (support 2 radius).
+      inflation: multiplicative factor on the background anomalies (>= 1 typically).
+    """
 
     radius: float = 4.0
     inflation: float = 1.05
@@ -302,17 +310,18 @@ def _check(model: StateSpaceModel, static: LETKFStatic) -> None:
     check_standin("letkf")(model, static)
 
 
-LETKF = Method("letkf", ensemble_state, _step, _check, label="LETKF")
+LETKF = Kernel("letkf", ensemble_state, _step, _check, label="LETKF")
 
 
-def letkf(obs, ensemble, *, problem: StateSpaceModel, key, localization: Localization,
+@_checks.renamed_keywords(problem="model")
+def letkf(obs, ensemble, *, model: StateSpaceModel, key, localization: Localization | None = None,
           config: LETKFConfig = LETKFConfig(), inputs=None, return_ensembles: bool = False,
           check_finite: bool = True, progress=None) -> FilterResult:
     """Run the LETKF.
 
     Args:
       obs: (K, m) observations; NaN marks a missing entry.  ensemble: (N, d) at time 0.
-      problem: the model (static).  key: a ``jax.random.key`` (process noise only).
+      model: the model (static).  key: a ``jax.random.key`` (process noise only).
       localization: the positions of sites and observations (``ring_localization``).
       config: localisation radius and inflation (``LETKFConfig``); the inflation is traced, so a
         sweep over it compiles once.
@@ -323,9 +332,37 @@ def letkf(obs, ensemble, *, problem: StateSpaceModel, key, localization: Localiz
         the first compilation).
     Returns ``FilterResult(mean (K, d), std (K, d), ensembles | None, finite (K,))``.
     """
-    check_model(problem, "letkf")
-    check_localization(problem, localization, "letkf")
-    return run(LETKF, obs, ensemble, model=problem, key=key,
-               config=LETKFStatic(float(config.radius), localization),
-               params=jnp.asarray(config.inflation), inputs=inputs,
+    return run(method(localization, config), obs, ensemble, model=model, key=key, inputs=inputs,
                return_ensembles=return_ensembles, check_finite=check_finite, progress=progress)
+
+
+def method(localization: Localization | None = None, config: LETKFConfig = LETKFConfig()) -> Method:
+    """The LETKF as a ``Method`` for ``csf_jax.run``.
+
+    Args:
+      localization: where the sites and observations sit (``csf_jax.ring_localization(d, sites)``).
+      config: ``LETKFConfig``: the localisation radius (static) and the inflation (traced).
+    """
+    localization = require_localization(localization, "letkf")
+    if not isinstance(config, LETKFConfig):
+        raise TypeError(f"letkf: config must be a LETKFConfig, got {type(config).__name__}")
+    return Method(LETKF._replace(bind=_bind), LETKFStatic(float(config.radius), localization),
+                  jnp.asarray(config.inflation))
+
+
+def require_localization(localization, name: str) -> Localization:
+    """``localization`` if it is a ``Localization``; else a one-line error naming
+    ``csf_jax.ring_localization``."""
+    if localization is None:
+        raise TypeError(f"{name}: needs localization= (where the sites and observations sit): "
+                        f"csf_jax.ring_localization(d, obs_sites) for a ring of d sites")
+    if not isinstance(localization, Localization):
+        raise TypeError(f"{name}: localization must be a Localization (csf_jax.ring_localization"
+                        f"(d, obs_sites)), got {type(localization).__name__}")
+    return localization
+
+
+def _bind(model, static: LETKFStatic, params, state0):
+    check_model(model, "letkf")
+    check_localization(model, static.localization, "letkf")
+    return model, static, params, state0

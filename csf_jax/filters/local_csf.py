@@ -45,8 +45,8 @@ import jax
 import jax.numpy as jnp
 
 from csf_jax import _checks, _linalg
-from csf_jax.filters.driver import Method, StepOutput, run
-from csf_jax.filters.letkf import Localization, check_localization
+from csf_jax.filters.driver import Kernel, Method, StepOutput, run
+from csf_jax.filters.letkf import Localization, check_localization, require_localization
 from csf_jax.filters.result import FilterResult
 from csf_jax.local_prior import (
     LocalStats,
@@ -73,23 +73,24 @@ SAMPLERS = ("flow", "ancestral")
 class LocalCSFConfig:
     """Settings of the local CSF; defaults are the best Lorenz-96 values of docs/lorenz96_csf.md.
 
-    half_width: b, the regressions' reach (sites within ring distance b).
-    ridge, floor: regularisation of the local regressions (``csf_jax.local_prior.local_statistics``).
-    inflation: multiplicative factor on the propagated ensemble's anomalies (as the LETKF's).
-    reverse_steps: L noise levels, geometric from ``sigma_t(1)`` (9.85) to ``sigma_t(t_min)``.
-    t_min: the lowest level's time. The flow sampler starts each prior member at that level as if
-      it were already diffused, which is accurate only where ``sigma_t(t_min)^2`` is small against
-      the prior's smallest conditional variances: 1e-6 (sigma 1e-3) on Lorenz-96, where 1e-3
-      (sigma 0.03) left members 0.04 off the exact transform.
-    sigma_max: the VE SDE's scale (paper: 25).
-    cg_iterations: conjugate-gradient iterations per solve, block-preconditioned.
-    block: sites per preconditioner block (``d`` must be a multiple of ``2 block``, and
-      ``block > 2 half_width``).
-    top_iterations: Gauss-Newton steps of the posterior Tweedie estimate at the top level (the flow
-      sampler's shift from the diffused prior to the diffused posterior; a nonlinear sensor needs
-      several, the other levels warm-start from their neighbour and take one).
-    sampler: "flow" (default: deterministic, each posterior member tied to its prior member) or
-      "ancestral" (stochastic: fresh draws of the posterior; docs/lorenz96_csf.md measures it).
+    Attributes:
+      half_width: b, the regressions' reach (sites within ring distance b).
+      ridge, floor: regularisation of the local regressions (``csf_jax.local_prior.local_statistics``).
+      inflation: multiplicative factor on the propagated ensemble's anomalies (as the LETKF's).
+      reverse_steps: L noise levels, geometric from ``sigma_t(1)`` (9.85) to ``sigma_t(t_min)``.
+      t_min: the lowest level's time. The flow sampler starts each prior member at that level as if
+        it were already diffused, which is accurate only where ``sigma_t(t_min)^2`` is small against
+        the prior's smallest conditional variances: 1e-6 (sigma 1e-3) on Lorenz-96, where 1e-3
+        (sigma 0.03) left the members measurably off the exact transform.
+      sigma_max: the VE SDE's scale (paper: 25).
+      cg_iterations: conjugate-gradient iterations per solve, block-preconditioned.
+      block: sites per preconditioner block (``d`` must be a multiple of ``2 block``, and
+        ``block > 2 half_width``).
+      top_iterations: Gauss-Newton steps of the posterior Tweedie estimate at the top level (the flow
+        sampler's shift from the diffused prior to the diffused posterior; a nonlinear sensor needs
+        several, the other levels warm-start from their neighbour and take one).
+      sampler: "flow" (default: deterministic, each posterior member tied to its prior member) or
+        "ancestral" (stochastic: fresh draws of the posterior; docs/lorenz96_csf.md measures it).
     """
 
     half_width: int = 8
@@ -330,18 +331,20 @@ def _check(model: StateSpaceModel, config: LocalCSFConfig) -> None:
     if model.obs_noise.covariance is not None:
         raise ValueError("local_filter: needs uncorrelated observation noise")
     if 2 * config.half_width + 1 > model.dim:
-        raise ValueError(f"local_filter: the neighbourhood ({2 * config.half_width + 1} sites) is "
-                         f"wider than the ring (d={model.dim})")
+        raise ValueError(f"local_filter: the neighbourhood of 2 x LocalCSFConfig.half_width + 1 = "
+                         f"{2 * config.half_width + 1} sites is wider than the ring (d={model.dim}); "
+                         f"use half_width <= {(model.dim - 1) // 2}")
     if model.dim % (2 * config.block):
         raise ValueError(f"local_filter: d={model.dim} must be a multiple of 2 x block "
                          f"(LocalCSFConfig.block={config.block}): the preconditioner's blocks "
                          f"alternate in two colours around the ring")
 
 
-LOCAL_CSF = Method("local_filter", _init, _step, _check, label="local CSF")
+LOCAL_CSF = Kernel("local_filter", _init, _step, _check, label="local CSF")
 
 
-def local_filter(obs, ensemble, *, problem: StateSpaceModel, key,
+@_checks.renamed_keywords(problem="model")
+def local_filter(obs, ensemble, *, model: StateSpaceModel, key,
                  localization: Localization, config: LocalCSFConfig = LocalCSFConfig(),
                  return_ensembles: bool = False, check_finite: bool = True,
                  progress: Callable[[jax.Array], None] | None = None) -> FilterResult:
@@ -349,7 +352,7 @@ def local_filter(obs, ensemble, *, problem: StateSpaceModel, key,
 
     Args:
       obs: (K, m) observations; NaN marks a missing entry.  ensemble: (N, d) at time 0.
-      problem: the model (static); its sensor must be a point sensor at ``localization.obs``.
+      model: the model (static); its sensor must be a point sensor at ``localization.obs``.
       key: a ``jax.random.key``; same key, same result.
       localization: ``csf_jax.ring_localization(d, obs_sites)``.
       config: ``LocalCSFConfig``.  return_ensembles: also return the (K, N, d) ensembles.
@@ -359,9 +362,34 @@ def local_filter(obs, ensemble, *, problem: StateSpaceModel, key,
     Returns ``FilterResult(mean (K, d), std (K, d), ensembles | None, finite (K,))``; jit-able
     (bind the keywords statically) and vmap-able over ``(obs, ensemble, key)``.
     """
-    check_model(problem, "local_filter")
-    _check(problem, config)
-    sites = check_localization(problem, localization, "local_filter", points=True)
-    return run(LOCAL_CSF, obs, ensemble, model=problem, key=key, config=config,
-               params=jnp.asarray(sites), return_ensembles=return_ensembles,
-               check_finite=check_finite, progress=progress)
+    return run(method(localization, config), obs, ensemble, model=model, key=key,
+               return_ensembles=return_ensembles, check_finite=check_finite, progress=progress)
+
+
+class LocalStatic(NamedTuple):
+    """The local CSF's static settings before the model is known."""
+
+    config: LocalCSFConfig
+    localization: Localization
+
+
+def method(localization: Localization | None = None,
+           config: LocalCSFConfig = LocalCSFConfig()) -> Method:
+    """The local CSF as a ``Method`` for ``csf_jax.run``.
+
+    Args:
+      localization: ``csf_jax.ring_localization(d, obs_sites)``.
+      config: ``LocalCSFConfig``.
+    """
+    localization = require_localization(localization, "local_filter")
+    if not isinstance(config, LocalCSFConfig):
+        raise TypeError(f"local_filter: config must be a LocalCSFConfig, got "
+                        f"{type(config).__name__}")
+    return Method(LOCAL_CSF._replace(bind=_bind), LocalStatic(config, localization))
+
+
+def _bind(model, static: LocalStatic, params, state0):
+    check_model(model, "local_filter")
+    _check(model, static.config)
+    sites = check_localization(model, static.localization, "local_filter", points=True)
+    return model, static.config, jnp.asarray(sites), state0

@@ -13,12 +13,14 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.special import logsumexp
 
-from csf_jax.filters.driver import Method, StepOutput, run
+from csf_jax import _checks
+from csf_jax.filters.driver import Kernel, Method, StepOutput, refuse_settings, run
 from csf_jax.filters.result import FilterResult
 from csf_jax.ssm import StateSpaceModel, log_likelihood, propagate
 
 
-def particle_filter(obs, ensemble, *, problem: StateSpaceModel, key, inputs=None,
+@_checks.renamed_keywords(problem="model")
+def particle_filter(obs, ensemble, *, model: StateSpaceModel, key, inputs=None,
                     return_ensembles: bool = False, check_finite: bool = True,
                     progress=None) -> FilterResult:
     """Run the bootstrap particle filter.
@@ -27,7 +29,7 @@ def particle_filter(obs, ensemble, *, problem: StateSpaceModel, key, inputs=None
       obs: (K, m) observations ``y_1 .. y_K``; float, promoted with ``ensemble`` to their common
         float dtype. NaN marks a missing entry (left out of the update); inf is an error.
       ensemble: (N, d) equally weighted particles at time 0.
-      problem: the state-space model (static: a hashable NamedTuple).
+      model: the state-space model (static: a hashable NamedTuple).
       key: a JAX PRNG key; the same key gives the same result.
       inputs: a time-varying model's per-step inputs (leading axis K), or None.
       return_ensembles: also return the resampled posterior ensembles (K, N, d).
@@ -41,8 +43,15 @@ def particle_filter(obs, ensemble, *, problem: StateSpaceModel, key, inputs=None
       Under jit/vmap, mean and std are NaN and ``finite`` False from a non-finite step on
       (``mark_nonfinite``).
     """
-    return run(PARTICLE_FILTER, obs, ensemble, model=problem, key=key, inputs=inputs,
+    return run(method(), obs, ensemble, model=model, key=key, inputs=inputs,
                return_ensembles=return_ensembles, check_finite=check_finite, progress=progress)
+
+
+def method(*settings, **named) -> Method:
+    """The bootstrap particle filter as a ``Method`` for ``csf_jax.run``. It has no settings: any
+    argument (a config object, say) is a TypeError."""
+    refuse_settings("particle_filter", settings, named)
+    return Method(PARTICLE_FILTER)
 
 
 def systematic_resample(key, log_weights):
@@ -108,4 +117,4 @@ def _step(model: StateSpaceModel, config, params, ensemble, y, key, time):
                                       {"ess": effective_sample_size(step.log_weights)})
 
 
-PARTICLE_FILTER = Method("particle_filter", _init, _step, label="particle")
+PARTICLE_FILTER = Kernel("particle_filter", _init, _step, label="particle")

@@ -20,8 +20,9 @@ are products over coordinates of the per-coordinate predictive likelihoods, so a
 on whether a shock happened. The posterior marginal of each coordinate is the hypotheses' mixture.
 Two approximations, both small here: the marginals are collapsed to a product every step, and the
 shock prior is the per-step marginal (it ignores that a run has exactly ``shock_count`` shocks).
-How close it is, is measured, not assumed: ``experiments.reference`` reruns it with more particles,
-and ``tests/test_reference.py`` checks it against the Kalman filter on a linear-Gaussian model.
+How close it is, is measured, not assumed: rerun with more particles, its RMSE barely moves
+(measured on docs/design.md, the reference filter's row), and ``tests/test_reference.py`` checks
+it against the Kalman filter on a linear-Gaussian model.
 """
 
 from __future__ import annotations
@@ -34,17 +35,24 @@ import numpy as np
 from jax.scipy.special import logsumexp
 
 from csf_jax import _checks
-from csf_jax.filters.driver import Method, StepOutput, run
+from csf_jax.filters.driver import Kernel, Method, StepOutput, run, run_kernel
 from csf_jax.filters.result import FilterResult
-from csf_jax.ssm import StateSpaceModel, entry_log_likelihood, is_additive, is_isotropic
+from csf_jax.ssm import (
+    StateSpaceModel,
+    check_model,
+    entry_log_likelihood,
+    is_additive,
+    is_isotropic,
+)
 
 
 class ReferenceConfig(NamedTuple):
     """Settings of the reference filter; defaults made the table's reference row.
 
-    particles: M particles per coordinate.
-    model_shocks: weigh the shock hypothesis each step (False: a plain per-coordinate PF).
-    shock_draws: Monte Carlo draws of ``model.shock_times`` for the per-step shock probability.
+    Attributes:
+      particles: M particles per coordinate.
+      model_shocks: weigh the shock hypothesis each step (False: a plain per-coordinate PF).
+      shock_draws: Monte Carlo draws of ``model.shock_times`` for the per-step shock probability.
     """
 
     particles: int = 20000
@@ -139,7 +147,7 @@ def _check(model: StateSpaceModel, config: ReferenceConfig) -> None:
                          f"{config.particles} and {config.shock_draws}")
 
 
-REFERENCE = Method("reference_filter", _init, _step, _check, label="reference")
+REFERENCE = Kernel("reference_filter", _init, _step, _check, label="reference")
 
 
 def _candidate_weights(share, ll0, ll1):
@@ -157,7 +165,8 @@ def _moments(candidates, log_w):
     return mean, jnp.sqrt(jnp.sum(w * (candidates - mean) ** 2, axis=0))
 
 
-def reference_filter(obs, ensemble, *, problem: StateSpaceModel, key,
+@_checks.renamed_keywords(problem="model")
+def reference_filter(obs, ensemble, *, model: StateSpaceModel, key,
                      config: ReferenceConfig = ReferenceConfig(),
                      check_finite: bool = True) -> FilterResult:
     """Run the per-coordinate reference filter.
@@ -166,24 +175,52 @@ def reference_filter(obs, ensemble, *, problem: StateSpaceModel, key,
       obs: (K, m) observations ``y_1 .. y_K``, m == d, ``y_i`` seeing only ``x_i``; NaN: missing.
       ensemble: (N, d) initial particles; the filter starts from ``config.particles`` of them per
         coordinate, drawn with replacement column by column (N = config.particles: used as is).
-      problem: the state-space model (static).  key: a ``jax.random.key``.
+      model: the state-space model (static).  key: a ``jax.random.key``.
       config: ``ReferenceConfig``.
     Returns:
       ``FilterResult(mean (K, d), std (K, d))``: the weighted moments of the mixture over the
       shock hypotheses, before resampling.
     """
-    _checks.check_filter_inputs(obs, ensemble, problem, name="reference_filter")
+    return run(method(config), obs, ensemble, model=model, key=key, check_finite=check_finite)
+
+
+def method(config: ReferenceConfig = ReferenceConfig(), own_start: bool = False) -> Method:
+    """The reference filter as a ``Method`` for ``csf_jax.run``.
+
+    Args:
+      config: ``ReferenceConfig``.
+      own_start: start from ``config.particles`` draws of the model's
+        initial law (key ``fold_in(key, 1)``) instead of the ensemble given to ``run``: the tables'
+        reference, near-exact whatever N the other filters get.
+    """
+    if not isinstance(config, ReferenceConfig):
+        raise TypeError(f"reference_filter: config must be a ReferenceConfig, got "
+                        f"{type(config).__name__}")
+    return Method(REFERENCE._replace(runner=_run_method), (config, bool(own_start)))
+
+
+def _run_method(method, obs, ensemble, *, model, key, inputs=None, return_ensembles=False,
+                check_finite=True, progress=None) -> FilterResult:
+    config, own_start = method.config
+    if inputs is not None or return_ensembles:
+        raise ValueError("reference_filter: takes no inputs and returns no ensembles")
+    if own_start:
+        check_model(model, "reference_filter")
+        ensemble = model.initial_ensemble(jax.random.fold_in(key, 1), config.particles).astype(
+            jnp.result_type(ensemble))
+    _checks.check_filter_inputs(obs, ensemble, model, name="reference_filter")
     _checks.check_key(key, name="reference_filter")
-    _check(problem, config)
+    _check(model, config)
     k_init, k_run = jax.random.split(key)
     m = int(config.particles)
     ensemble = jnp.asarray(ensemble)
     if ensemble.shape[0] != m:
-        idx = jax.random.randint(k_init, (m, problem.dim), 0, ensemble.shape[0])
+        idx = jax.random.randint(k_init, (m, model.dim), 0, ensemble.shape[0])
         ensemble = jnp.take_along_axis(ensemble, idx, axis=0)
     K = jnp.shape(obs)[0]
-    p = (shock_probability(problem, K, config.shock_draws) if config.model_shocks
+    p = (shock_probability(model, K, config.shock_draws) if config.model_shocks
          else np.zeros(K))
-    return run(REFERENCE, obs, ensemble, model=problem, key=k_run, config=config,
-               params=jnp.asarray(p, jnp.result_type(jnp.asarray(obs).dtype, ensemble.dtype)),
-               check_finite=check_finite)
+    return run_kernel(REFERENCE, obs, ensemble, model=model, key=k_run, config=config,
+                      params=jnp.asarray(p, jnp.result_type(jnp.asarray(obs).dtype,
+                                                            ensemble.dtype)),
+                      check_finite=check_finite, progress=progress)

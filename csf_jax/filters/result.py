@@ -16,15 +16,32 @@ class FilterResult(NamedTuple):
       std: (K, d) per-coordinate spread (ensemble or posterior std).
       ensembles: (K, N, d) posterior ensembles, or None unless ``return_ensembles=True``
         (the Kalman filter has no ensemble and always returns None).
-      ess: (K,) effective sample size before resampling (particle filter only), else None.
+      ess: (K,) effective sample size ``1 / sum(w^2)`` before resampling (particle filter only),
+        else None. A concrete run whose ESS falls below ``driver.COLLAPSED_ESS`` (1.5: one
+        particle holds the weight) warns once (RuntimeWarning), naming the first such step.
       finite: (K,) bool, False from the first step whose observation is infinite or whose mean or
         std is non-finite on; mean and std are NaN there (``mark_nonfinite``). NaN observations
-        are missing, not bad. Concrete calls refuse infinite observations and raise on a
-        non-finite mean (``check_finite=True``), so this matters under ``jax.jit``/``jax.vmap``.
-        None only for results built by hand.
-      info: dict of per-step diagnostics ``(K,)``, or None: CSF's ``bandwidth`` (the kernel
-        bandwidth h of its mixture prior, 1 = the ensemble's Gaussian) and ``shock_weight`` (the
-        posterior weight of the broad shock component).
+        are missing, not bad. A filter whose state lost its numbers at a step reports that step's
+        mean as NaN even where its resampling would hide it (CSF: a non-finite forecast member or
+        prior covariance), so a diverged run never comes back as finite numbers from an ensemble
+        that recovered by dropping the overflowed members. Concrete calls refuse infinite
+        observations and raise on a non-finite mean (``check_finite=True``), so this matters
+        under ``jax.jit``/``jax.vmap``. None only for results built by hand.
+      info: dict of per-step diagnostics, each stacked over the K steps from the filter step's
+        ``StepOutput.info``, or None where the filter reports none. Exactly:
+
+        * CSF with the mixture prior (``PriorConfig.mixture``, e.g. ``csf_jax.ROBUST``):
+          ``particle_weight`` and ``shock_weight``, each ``(K,)``, the posterior weights of the
+          mixture's particle and shock components (the ensemble component has the rest). CSF
+          without the mixture (the default): None; it has no bandwidth or other per-step
+          setting to report.
+        * The Kalman filter's step reports ``cov`` ``(K, d, d)``, the filtered covariances;
+          ``kalman_filter`` and ``csf_jax.run(csf_jax.methods.kalman(), ...)`` drop it (None),
+          ``csf_jax.filters.kalman.kalman_filter_cov`` returns it.
+        * The particle filter's step reports ``ess``, which goes to ``FilterResult.ess``
+          (info None).
+        * Every other filter (EnKF, LETKF, sharded LETKF, local CSF, local transform CSF, EnSF,
+          SF, reference): None.
     """
 
     mean: jax.Array
@@ -39,10 +56,17 @@ def mark_nonfinite(result: FilterResult, obs) -> FilterResult:
     """Report non-finite steps of a filter run over ``obs (K, m)``; works under jit and vmap.
 
     A step is bad if its observation has an inf (NaN is a missing entry) or its mean or std a NaN
-    or inf. From the first bad step on,
-    ``finite`` is False and mean and std are NaN, so no filter (the particle filter's resampling
-    can make later means finite again) returns plausible numbers after a bad input. Ensembles and
-    ESS are left as computed.
+    or inf; a filter whose own state overflowed at a step (a forecast member or the ensemble's
+    covariance non-finite: the model's drift blew up on a member) reports that step's mean as
+    NaN, since resampling could drop the bad members and leave sane-looking numbers. From the
+    first bad step on, ``finite`` is False and mean and std are NaN, so no filter (the particle
+    filter's and the mixture's resampling can make later means finite again) returns plausible
+    numbers after a bad input or a divergence. Ensembles and ESS are left as computed.
+
+    What is not flagged: a mean or spread that is large but finite. No bound on it holds for
+    every model: an unstable linear model seen through an outage grows its spread by
+    ``|a|^K`` legitimately, stochastic volatility and Cauchy noise put members far out, so a
+    threshold would refuse correct runs; the divergence rule stays the overflow of the state.
     """
     ok = (~jnp.isinf(obs).any(-1) & jnp.isfinite(result.mean).all(-1)
           & jnp.isfinite(result.std).all(-1))

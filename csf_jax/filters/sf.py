@@ -22,7 +22,7 @@ import optax
 from csf_jax import _checks, networks
 from csf_jax.dsm import dsm_fit
 from csf_jax.filters.csf import CSFConfig, particle_sampler, sampler_start
-from csf_jax.filters.driver import Method, StepOutput, run
+from csf_jax.filters.driver import Kernel, Method, StepOutput, run
 from csf_jax.filters.result import FilterResult
 from csf_jax.prior import unconditional_prior
 from csf_jax.ssm import StateSpaceModel, process_draws
@@ -32,11 +32,12 @@ from csf_jax.ssm import StateSpaceModel, process_draws
 class SFConfig:
     """Per-step training of the SF baseline; defaults reproduce the README's tables.
 
-    train_steps: Adam steps per filter step, warm-started (the SF's per-step training budget).
-    warmup_steps: Adam steps on the initial ensemble, from a fresh net, before the first step.
-    batch: particles per Adam step (drawn with replacement from the N-particle prior ensemble).
-    lr: Adam learning rate (constant).
-    network: the score net's architecture (the same ``ScoreNet`` as CSF; the code is fixed at zero).
+    Attributes:
+      train_steps: Adam steps per filter step, warm-started (the SF's per-step training budget).
+      warmup_steps: Adam steps on the initial ensemble, from a fresh net, before the first step.
+      batch: particles per Adam step (drawn with replacement from the N-particle prior ensemble).
+      lr: Adam learning rate (constant).
+      network: the score net's architecture (the same ``ScoreNet`` as CSF; the code is fixed at zero).
     """
 
     train_steps: int = 200
@@ -80,7 +81,7 @@ def _init(model: StateSpaceModel, static: SFStatic, params, ensemble, key):
     if config.warmup_steps:
         score_vars, opt_state, _ = dsm_fit(k_warm, ensemble, score_vars, opt_state, optimizer,
                                            config=net, steps=config.warmup_steps,
-                                           batch=config.batch, t_min=sampler.t_min,
+                                           batch=config.batch, t_min=sampler.sampler.t_min,
                                            shards=static.shards)
     return (ensemble, score_vars, opt_state), k_scan
 
@@ -94,27 +95,28 @@ def _step(model: StateSpaceModel, static: SFStatic, params, state, y, key, time)
     centers = jax.vmap(model.drift)(ens)
     prior_ens = centers + process_draws(model, k_prop, ens.shape, ens.dtype)
     sv, o, _ = dsm_fit(k_fit, prior_ens, sv, o, _optimizer(config), config=net,
-                       steps=config.train_steps, batch=config.batch, t_min=sampler.t_min,
+                       steps=config.train_steps, batch=config.batch, t_min=sampler.sampler.t_min,
                        shards=static.shards)
     prior = unconditional_prior(net)
     full = {"encoder": None, "score": sv}
     context = prior.condition(full, centers, prior_ens, model.process_std)
-    guide = jnp.where((time.k > 1) | sampler.assimilate_first, 1.0, 0.0).astype(ens.dtype)
+    guide = jnp.where((time.k > 1) | sampler.sampler.assimilate_first, 1.0, 0.0).astype(ens.dtype)
     x_init, start = sampler_start(sampler, prior_ens, k_x, y, model, guide)
     post = particle_sampler(model, prior, sampler)(full, context, y, x_init, start, k_rev, guide)
     return (post, sv, o), StepOutput(post.mean(0), post.std(0), post)
 
 
 def _check(model: StateSpaceModel, static: SFStatic) -> None:
-    if static.config.network.sigma_max != static.sampler.sigma_max:
+    if static.config.network.sigma_max != static.sampler.sampler.sigma_max:
         raise ValueError(f"SFConfig.network.sigma_max ({static.config.network.sigma_max}) must "
-                         f"equal the sampler's sigma_max ({static.sampler.sigma_max})")
+                         f"equal the sampler's sigma_max ({static.sampler.sampler.sigma_max})")
 
 
-SCORE_FILTER = Method("score_filter", _init, _step, _check, label="SF")
+SCORE_FILTER = Kernel("score_filter", _init, _step, _check, label="SF")
 
 
-def score_filter(obs, ensemble, *, problem: StateSpaceModel, key, config: SFConfig = SFConfig(),
+@_checks.renamed_keywords(problem="model")
+def score_filter(obs, ensemble, *, model: StateSpaceModel, key, config: SFConfig = SFConfig(),
                  sampler: CSFConfig = CSFConfig(), inputs=None, return_ensembles: bool = False,
                  check_finite: bool = True,
                  progress: Callable[[jax.Array], None] | None = None,
@@ -125,7 +127,7 @@ def score_filter(obs, ensemble, *, problem: StateSpaceModel, key, config: SFConf
       obs: (K, m) observations ``y_1 .. y_K``; float, promoted with ``ensemble`` to their common
         float dtype. NaN marks a missing entry (left out of the update); inf is an error.
       ensemble: (N, d) initial ensemble (time 0).
-      problem: the ``StateSpaceModel`` (static: hashable).
+      model: the ``StateSpaceModel`` (static: hashable).
       key: a ``jax.random.key``; it also initialises the score net. Same key, same result.
       config: the per-step training budget and network (``SFConfig``).
       sampler: reverse-SDE and guidance settings, shared with CSF (``CSFConfig``; SF samples from
@@ -146,11 +148,20 @@ def score_filter(obs, ensemble, *, problem: StateSpaceModel, key, config: SFConf
       ``jax.vmap`` over ``(obs, ensemble, key)``; there mean and std are NaN and ``finite`` False
       from a non-finite step on (``mark_nonfinite``).
     """
-    if isinstance(shards, bool) or not isinstance(shards, int) or shards < 1 \
+    return run(method(config, sampler, shards), obs, ensemble, model=model, key=key,
+               inputs=inputs, return_ensembles=return_ensembles, check_finite=check_finite,
+               progress=progress)
+
+
+def method(config: SFConfig = SFConfig(), sampler: CSFConfig = CSFConfig(),
+           shards: int = 1) -> Method:
+    """The score filter as a ``Method`` for ``csf_jax.run`` (arguments: ``score_filter``)."""
+    if not isinstance(config, SFConfig) or not isinstance(sampler, CSFConfig):
+        raise TypeError(f"score_filter: config must be an SFConfig and sampler a CSFConfig, got "
+                        f"{type(config).__name__} and {type(sampler).__name__}")
+    if isinstance(shards, bool) or not isinstance(shards, int) or shards < 1\
             or config.batch % shards or shards > jax.local_device_count():
         raise ValueError(f"score_filter: shards must be a positive int dividing SFConfig.batch "
                          f"({config.batch}) and at most the {jax.local_device_count()} local "
                          f"devices, got {shards!r}")
-    return run(SCORE_FILTER, obs, ensemble, model=problem, key=key,
-               config=SFStatic(config, sampler, shards), inputs=inputs,
-               return_ensembles=return_ensembles, check_finite=check_finite, progress=progress)
+    return Method(SCORE_FILTER, SFStatic(config, sampler, shards))

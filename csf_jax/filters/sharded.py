@@ -43,7 +43,13 @@ from jax.sharding import PartitionSpec as P
 
 from csf_jax import _checks
 from csf_jax.covariance import gaspari_cohn
-from csf_jax.filters.letkf import LETKFConfig, Localization, _model_sensor_sites
+from csf_jax.filters.driver import Kernel, Method, run
+from csf_jax.filters.letkf import (
+    LETKFConfig,
+    Localization,
+    _model_sensor_sites,
+    require_localization,
+)
 from csf_jax.filters.result import FilterResult, mark_nonfinite
 from csf_jax.ssm import (
     StateSpaceModel,
@@ -57,8 +63,9 @@ from csf_jax.ssm import (
 
 AXIS = "sites"
 NAME = "sharded_letkf"
-#: the most sites a device analyses at once (``SitePlan.chunk``): about 0.3 GB of working memory
-#: at N = 20 and radius 4 in float32 (XLA's CPU memory analysis: about 4 KB per site of a chunk)
+#: the most sites a device analyses at once (``SitePlan.chunk``): the analysis's working memory
+#: grows linearly with the chunk (and as N^2 per site); its size at N = 20, radius 4 is on
+#: docs/scale_out.md, "Memory per device"
 CHUNK = 2 ** 16
 
 
@@ -70,7 +77,8 @@ class SitePlan(NamedTuple):
     offsets, in the order the LETKF sorts a site's observations (0, -1, +1, -2, +2, ...).
     taper: ``(2h + 1,)`` the Gaspari-Cohn weight at each offset.  chunk: sites analysed at once
     (a divisor of b; the chunks of a block one after the other), which bounds the analysis's
-    working memory (about 4 KB per site of a chunk at N = 20, radius 4; growing as N^2).  one_by_one:
+    working memory (linear in the chunk, growing as N^2 per site: the N x N matrices of each site;
+    measured on docs/scale_out.md).  one_by_one:
     eigendecompose the sites one at a time (``site_transform``), for CPU meshes with several
     devices in one process.
     """
@@ -162,8 +170,22 @@ def site_slots(sites: np.ndarray, dim: int) -> SiteSlots:
 
 def site_mesh(devices=None) -> Mesh:
     """A 1-D mesh with the axis ``"sites"`` over ``devices`` (default ``jax.devices()``: every
-    device of every process, so it spans the hosts under ``jax.distributed``)."""
-    devices = jax.devices() if devices is None else list(devices)
+    device of every process, so it spans the hosts under ``jax.distributed``). TypeError for
+    anything but a sequence of ``jax.Device``s (a string such as a platform name), ValueError for
+    an empty one."""
+    if devices is None:
+        devices = jax.devices()
+    elif isinstance(devices, (str, bytes)) or not hasattr(devices, "__iter__"):
+        raise TypeError(f"site_mesh: devices must be a sequence of jax devices (e.g. "
+                        f"jax.devices()[:2]), got {type(devices).__name__} {devices!r:.40}")
+    devices = list(devices)
+    if not devices:
+        raise ValueError("site_mesh: devices is empty; give at least one jax device (e.g. "
+                        "jax.devices()[:2]) or None for all of them")
+    wrong = [d for d in devices if not isinstance(d, jax.Device)]
+    if wrong:
+        raise TypeError(f"site_mesh: devices must be jax devices (e.g. jax.devices()[:2]), got "
+                        f"{type(wrong[0]).__name__} {wrong[0]!r:.40}")
     return Mesh(np.asarray(devices), (AXIS,))
 
 
@@ -242,32 +264,32 @@ def block_analysis(forecast, hx, y, r_inv, plan: SitePlan):
 
 
 @functools.lru_cache(maxsize=64)
-def check_ring(model: StateSpaceModel, localization) -> np.ndarray:
+def check_ring(model: StateSpaceModel, localization, name: str = NAME) -> np.ndarray:
     """The observations' sites ``(m,)``, after checking that ``localization`` is the ring of the
     model's d sites (``ring_localization(d, sites)``) and that ``model.observe`` is a point
     sensor whose observation j reads the site the localisation places it at; ValueError
     otherwise (TypeError for something other than a ``Localization``)."""
     if not isinstance(localization, Localization):
-        raise TypeError(f"{NAME}: localization must be a csf_jax.Localization (e.g. "
+        raise TypeError(f"{name}: localization must be a csf_jax.Localization (e.g. "
                         f"csf_jax.ring_localization(d, sites)), got {type(localization).__name__}")
     d, m = model.dim, model.obs_dim
     state = np.asarray(localization.state, np.float64)
     if (localization.period is None or float(localization.period) != float(d)
             or state.shape != (d,) or np.any(state != np.arange(d))):
-        raise ValueError(f"{NAME}: needs the ring of d={d} sites (csf_jax.ring_localization); a "
+        raise ValueError(f"{name}: needs the ring of d={d} sites (csf_jax.ring_localization); a "
                          f"line or other positions are not supported")
     placed = np.asarray(localization.obs, np.float64)
     if placed.shape != (m,):
-        raise ValueError(f"{NAME}: the localization has {placed.size} observations; the model "
+        raise ValueError(f"{name}: the localization has {placed.size} observations; the model "
                          f"has m={m}")
     sites = _model_sensor_sites(model)
     if sites is None:
-        raise ValueError(f"{NAME}: model.observe is not a point sensor (observation j must depend "
+        raise ValueError(f"{name}: model.observe is not a point sensor (observation j must depend "
                          f"on one site alone: identity, arctan, every k-th site)")
     wrong = np.flatnonzero(placed != sites)
     if wrong.size:
         j = int(wrong[0])
-        raise ValueError(f"{NAME}: observation {j} reads site {int(sites[j])}, but the "
+        raise ValueError(f"{name}: observation {j} reads site {int(sites[j])}, but the "
                          f"localization places it at {placed[j]:g} ({wrong.size} of {m} "
                          f"misplaced); give ring_localization(d, sites) with sites[j] the site "
                          f"observation j reads")
@@ -299,10 +321,7 @@ def _scan(model: StateSpaceModel, plan: SitePlan, mesh: Mesh, return_ensembles: 
 
     def body(ens, xs):
         y, key_k = xs
-        forecast = jax.lax.with_sharding_constraint(
-            propagate(model, key_k, ens).astype(dtype), state)
-        center = forecast.mean(0)
-        forecast = center + inflation.astype(dtype) * (forecast - center)
+        forecast = sharded_forecast(model, key_k, ens, inflation, state)
         hx = jax.vmap(model.observe)(forecast).astype(dtype)
         if slot_index is not None:
             hx = jnp.where(slot_has, hx[:, slot_index], 0.0)
@@ -331,44 +350,69 @@ def _is_global(x) -> bool:
     return isinstance(x, jax.Array) and not x.is_fully_addressable
 
 
-def _check_arrays(obs, ensemble, model: StateSpaceModel) -> None:
+def require_concrete(name: str, *arrays) -> None:
+    """TypeError if any of ``arrays`` is a tracer: a sharded filter places its arrays on the mesh
+    and runs its own jitted scan, so it is called outside ``jax.jit``/``jax.vmap``."""
+    if not _checks.is_concrete(*arrays):
+        raise TypeError(f"{name}: takes concrete arrays (it places them on the device mesh "
+                        f"itself), not tracers of an outer jax.jit or jax.vmap; call it outside "
+                        f"jit")
+
+
+def _check_arrays(obs, ensemble, model: StateSpaceModel, name: str = NAME) -> None:
     """``check_filter_inputs`` (shapes, dtypes, a finite ensemble, no inf in obs); for global
     arrays spread over processes the shape checks run on their shapes and the value checks as
     global reductions."""
     if not (_is_global(obs) or _is_global(ensemble)):
-        _checks.check_filter_inputs(obs, ensemble, model, name=NAME)
+        _checks.check_filter_inputs(obs, ensemble, model, name=name)
         return
-    jax.eval_shape(lambda o, e: _checks.check_filter_inputs(o, e, model, name=NAME),
+    jax.eval_shape(lambda o, e: _checks.check_filter_inputs(o, e, model, name=name),
                    jax.ShapeDtypeStruct(np.shape(obs), jnp.result_type(obs)),
                    jax.ShapeDtypeStruct(np.shape(ensemble), jnp.result_type(ensemble)))
     if not bool(jax.jit(lambda e: jnp.isfinite(e).all())(ensemble)):
-        raise ValueError(f"{NAME}: ensemble has non-finite value(s)")
+        raise ValueError(f"{name}: ensemble has non-finite value(s)")
     if bool(jax.jit(lambda o: jnp.isinf(o).any())(obs)):
-        raise ValueError(f"{NAME}: obs has infinite value(s) (NaN marks a missing entry; inf is "
+        raise ValueError(f"{name}: obs has infinite value(s) (NaN marks a missing entry; inf is "
                          f"an error)")
     if not _is_global(obs):
-        _checks.check_missing_supported(NAME, obs, model)
+        _checks.check_missing_supported(name, obs, model)
 
 
-def _check_model(model: StateSpaceModel, config: LETKFConfig, mesh) -> None:
-    """What this version filters: module docstring."""
-    check_model(model, NAME)
-    if not isinstance(config, LETKFConfig):
-        raise TypeError(f"{NAME}: config must be a csf_jax.LETKFConfig, got "
+def check_mesh_model(model: StateSpaceModel, config, config_type: type, mesh, name: str,
+                     one_device: str) -> None:
+    """What the sharded filters filter (module docstring): a time-invariant model with i.i.d.
+    additive observation noise, a ``config_type`` config, a mesh with a ``"sites"`` axis;
+    ``one_device`` names the filter for the rest."""
+    check_model(model, name)
+    if not isinstance(config, config_type):
+        raise TypeError(f"{name}: config must be a csf_jax.{config_type.__name__}, got "
                         f"{type(config).__name__}")
     if model.time_varying:
-        raise ValueError(f"{NAME}: model {model.name!r} is time-varying; the sharded LETKF "
-                         f"filters time-invariant models (use csf_jax.letkf)")
+        raise ValueError(f"{name}: model {model.name!r} is time-varying; it filters "
+                         f"time-invariant models (use {one_device})")
     if not is_additive(model) or model.obs_noise.covariance is not None:
-        raise ValueError(f"{NAME}: needs additive observation noise without a covariance (i.i.d. "
+        raise ValueError(f"{name}: needs additive observation noise without a covariance (i.i.d. "
                          f"per observation); model {model.name!r} has "
                          f"{model.obs_noise.name!r}")
     if not isinstance(mesh, Mesh) or AXIS not in mesh.axis_names:
-        raise ValueError(f"{NAME}: mesh must be a jax.sharding.Mesh with an axis named {AXIS!r} "
-                         f"(csf_jax.filters.sharded.site_mesh()), got {mesh!r:.80}")
+        raise ValueError(f"{name}: mesh must be a jax.sharding.Mesh with an axis named {AXIS!r} "
+                         f"(csf_jax.site_mesh()), got {mesh!r:.80}")
 
 
-def sharded_letkf(obs, ensemble, *, problem: StateSpaceModel, key, localization: Localization,
+def concrete_inputs(name: str, method, obs, ensemble, key, inputs) -> tuple:
+    """A sharded run's settings and inputs: ``(localization, config, mesh, chunk, obs,
+    ensemble)``, the arrays concrete (host or global), the mesh ``site_mesh()`` by default."""
+    localization, config, mesh, chunk = method.config
+    if inputs is not None:
+        raise ValueError(f"{name}: takes no inputs (a time-invariant model)")
+    require_concrete(name, obs, ensemble, key)
+    mesh = site_mesh() if mesh is None else mesh
+    obs, ensemble = (x if isinstance(x, jax.Array) else np.asarray(x) for x in (obs, ensemble))
+    return localization, config, mesh, chunk, obs, ensemble
+
+
+@_checks.renamed_keywords(problem="model")
+def sharded_letkf(obs, ensemble, *, model: StateSpaceModel, key, localization: Localization,
                   config: LETKFConfig = LETKFConfig(), mesh: Mesh | None = None,
                   chunk: int = CHUNK, return_ensembles: bool = False,
                   check_finite: bool = True) -> FilterResult:
@@ -379,7 +423,7 @@ def sharded_letkf(obs, ensemble, *, problem: StateSpaceModel, key, localization:
         process) or a global ``jax.Array``.
       ensemble: (N, d) at time 0; host or global array (placed as ``PartitionSpec(None,
         "sites")``).
-      problem: the model (static): time-invariant, a point sensor with at most one observation
+      model: the model (static): time-invariant, a point sensor with at most one observation
         per site, i.i.d. additive observation noise.
       key: a ``jax.random.key`` (process noise only), the same on every process.
       localization: ``csf_jax.ring_localization(d, sites)``, sites[j] the site observation j reads.
@@ -398,42 +442,85 @@ def sharded_letkf(obs, ensemble, *, problem: StateSpaceModel, key, localization:
     halo wider than a block. Takes concrete arrays (it places them on the mesh), not tracers of an
     outer ``jax.jit``.
     """
-    mesh = site_mesh() if mesh is None else mesh
-    obs, ensemble = (x if isinstance(x, jax.Array) else np.asarray(x) for x in (obs, ensemble))
-    _check_model(problem, config, mesh)
-    sites = check_ring(problem, localization)
-    plan = site_plan(problem.dim, float(config.radius), int(mesh.shape[AXIS]), chunk=chunk,
+    return run(method(localization, config, mesh=mesh, chunk=chunk), obs, ensemble, model=model,
+               key=key, return_ensembles=return_ensembles, check_finite=check_finite)
+
+
+def method(localization: Localization | None = None, config: LETKFConfig = LETKFConfig(), *,
+           mesh: Mesh | None = None, chunk: int = CHUNK) -> Method:
+    """The sharded LETKF as a ``Method`` for ``csf_jax.run`` (arguments: ``sharded_letkf``); it
+    runs its own scan on the mesh, so ``csf_jax.run`` takes concrete arrays for it."""
+    localization = require_localization(localization, NAME)
+    if not isinstance(config, LETKFConfig):
+        raise TypeError(f"{NAME}: config must be a LETKFConfig, got {type(config).__name__}")
+    return Method(SHARDED, (localization, config, mesh, chunk))
+
+
+def _run_method(method, obs, ensemble, *, model, key, inputs=None, return_ensembles=False,
+                check_finite=True, progress=None) -> FilterResult:
+    localization, config, mesh, chunk, obs, ensemble = concrete_inputs(NAME, method, obs,
+                                                                       ensemble, key, inputs)
+    check_mesh_model(model, config, LETKFConfig, mesh, NAME, "csf_jax.letkf")
+    sites = check_ring(model, localization)
+    plan = site_plan(model.dim, float(config.radius), int(mesh.shape[AXIS]), chunk=chunk,
                      one_by_one=_shares_a_cpu_pool(mesh))
-    slots = site_slots(sites, problem.dim)
-    _check_arrays(obs, ensemble, problem)
+    slots = site_slots(sites, model.dim)
+    _check_arrays(obs, ensemble, model)
     _checks.check_key(key, NAME)
     dtype = _checks.compute_dtype(jnp.result_type(obs), jnp.result_type(ensemble))
-    check_covariances(problem, dtype, NAME)
-    check_dynamics(problem, dtype, None, NAME)
+    check_covariances(model, dtype, NAME)
+    check_dynamics(model, dtype, None, NAME)
     state, sites_only = _state_sharding(mesh, 2), _state_sharding(mesh, 1)
     slot_index = slot_has = None
     if not slots.identity:                  # observations moved to their sites: (K, m) -> (K, d)
-        if _is_global(obs):
-            raise ValueError(f"{NAME}: obs spread over processes need the identity sensor "
-                             f"(observation j reads site j); give a host array of obs instead")
+        require_host_obs(NAME, obs)
         host = np.asarray(obs, dtype)
         obs = np.where(slots.has, host[:, slots.index], np.nan).astype(dtype)
         slot_index = _place(slots.index, sites_only, np.int32)
         slot_has = _place(slots.has, sites_only, bool)
-    result = _scan(problem, plan, mesh, bool(return_ensembles), jnp.asarray(config.inflation),
+    result = _scan(model, plan, mesh, bool(return_ensembles), jnp.asarray(config.inflation),
                    _place(obs, state, dtype), _place(ensemble, state, dtype), key, slot_index,
                    slot_has)
     if check_finite:
-        finite = np.asarray(result.finite)
-        _checks.check_result_finite(NAME, FilterResult(np.where(finite, 0.0, np.nan)[:, None],
-                                                       None))
+        raise_if_diverged(NAME, result)
     return result
+
+
+def sharded_forecast(model: StateSpaceModel, key, ensemble, inflation, sharding):
+    """The propagated ``ensemble (N, d)`` kept on the sites' ``sharding``, its anomalies scaled by
+    ``inflation`` (traced)."""
+    dtype = ensemble.dtype
+    forecast = jax.lax.with_sharding_constraint(propagate(model, key, ensemble).astype(dtype),
+                                                sharding)
+    center = forecast.mean(0)
+    return center + inflation.astype(dtype) * (forecast - center)
+
+
+def require_host_obs(name: str, obs) -> None:
+    """Observations to move onto their sites must be a host array (the identity sensor reads
+    global ones in place)."""
+    if _is_global(obs):
+        raise ValueError(f"{name}: obs spread over processes need the identity sensor "
+                         f"(observation j reads site j); give a host array of obs instead")
+
+
+def raise_if_diverged(name: str, result: FilterResult) -> None:
+    """``check_finite`` of a sharded result (its ``finite`` flags gathered to the host)."""
+    finite = np.asarray(result.finite)
+    _checks.check_result_finite(name, FilterResult(np.where(finite, 0.0, np.nan)[:, None], None))
+
+
+SHARDED = Kernel(NAME, None, None, label="sharded LETKF", runner=_run_method)
 
 
 def gather_result(result: FilterResult) -> FilterResult:
     """``result`` with every array as a numpy array holding all of it, on every process
     (``multihost_utils.process_allgather`` for arrays spread over processes)."""
     from jax.experimental import multihost_utils
+
+    if not isinstance(result, FilterResult):
+        raise TypeError(f"gather_result: takes the FilterResult of a sharded filter, got "
+                        f"{type(result).__name__}")
 
     def fetch(x):
         if isinstance(x, jax.Array) and not x.is_fully_addressable:

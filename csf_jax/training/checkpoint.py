@@ -5,6 +5,10 @@ network and training configs, dataset id, seed, validation history). Saves are s
 atomic (orbax writes a temporary directory and renames it when complete), so a ``kill -9`` at any
 moment leaves the last complete checkpoint intact; the next run resumes from it.
 
+Checkpoints do not depend on a device: the state is saved as host arrays (no sharding recorded)
+and restored onto this process's default device whatever a checkpoint records, so a run started
+on a GPU, or on several devices, resumes on a CPU and the other way round.
+
 A checkpoint damaged afterwards (a truncated array file or meta record, a missing folder) is not
 fatal: ``restore_intact`` resumes from the newest checkpoint that restores, moves each newer,
 damaged one aside to ``<dir>.damaged-<step>`` (never deleting it) and says so in one line.
@@ -15,7 +19,6 @@ from __future__ import annotations
 import os
 from collections.abc import Callable
 
-import jax
 import orbax.checkpoint as ocp
 
 from csf_jax import _store
@@ -39,7 +42,9 @@ def manager(directory: str, save_every: int, keep: int = 2) -> ocp.CheckpointMan
 
 
 def save(mngr: ocp.CheckpointManager, step: int, state, meta: dict, force: bool = False) -> bool:
-    """Save ``state`` and ``meta`` at ``step`` (if due, or ``force``); True if saved."""
+    """Save ``state`` and ``meta`` at ``step`` (if due, or ``force``); True if saved. The state's
+    arrays are saved as numpy arrays, so the checkpoint records no device."""
+    state = _store.host_arrays(state)
     return mngr.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(state),
                                                    meta=ocp.args.JsonSave(meta)), force=force)
 
@@ -84,9 +89,10 @@ def check_identity(found: dict, expected: dict, where: str) -> None:
 
 def restore(mngr: ocp.CheckpointManager, abstract_state, step: int | None = None):
     """Restore ``(state, meta)`` of ``step`` (default latest) into the structure of
-    ``abstract_state`` (e.g. ``jax.eval_shape`` of a fresh state)."""
+    ``abstract_state`` (a fresh state, or its ``jax.eval_shape``). The arrays go to this process's
+    default device, whatever devices the checkpoint records (``_store.restore_target``)."""
     step = mngr.latest_step() if step is None else step
-    target = jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, abstract_state)
+    target = _store.restore_target(abstract_state)
     out = mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(target),
                                                      meta=ocp.args.JsonRestore()))
     return out["state"], out["meta"]

@@ -21,8 +21,6 @@ import dataclasses
 import hashlib
 import json
 import os
-import sys
-import time
 from typing import NamedTuple
 
 import jax
@@ -33,16 +31,22 @@ from csf_jax import _checks, problems
 from csf_jax.filters.pf import sir_step
 from csf_jax.ssm import at_step, simulate, steps
 from csf_jax.trained import model_fingerprint
+from csf_jax.training.progress import Progress
 
 
 @dataclasses.dataclass(frozen=True)
 class DatasetConfig:
     """What to record. Defaults follow the paper for the wells (M = 1000, N = 1000).
 
-    trajectories: M.  particles: N of the recording PF.  keep: particles stored per ensemble.
-    stride: record every stride-th step.  seed: data seed.  chunk: trajectories per jitted batch.
-    dtype: "float16" (the shipped models' datasets: half the disk) or "float32" (for states whose
-      magnitude or resolution float16 would not hold: it keeps 3 significant digits up to 65504).
+    Attributes:
+      trajectories: M.
+      particles: N of the recording PF.
+      keep: particles stored per ensemble.
+      stride: record every stride-th step.
+      seed: data seed.
+      chunk: trajectories per jitted batch.
+      dtype: "float16" (the shipped models' datasets: half the disk) or "float32" (for states whose
+        magnitude or resolution float16 would not hold: it keeps 3 significant digits up to 65504).
     """
 
     trajectories: int = 1000
@@ -141,7 +145,9 @@ def generate(problem, config: DatasetConfig, directory: str, *, verbose: bool = 
     batch = jax.jit(jax.vmap(lambda k: rollout_priors(model, k, config.particles, config.keep,
                                                       config.stride)))
     keys = jax.random.split(jax.random.key(config.seed), config.trajectories)
-    t0 = time.perf_counter()
+    progress = Progress(f"[data {name}]", config.trajectories,
+                        min(meta["chunks_done"] * config.chunk, config.trajectories),
+                        unit="trajectories", verbose=verbose)
     for c in range(meta["chunks_done"], n_chunks):
         lo, hi = c * config.chunk, min((c + 1) * config.chunk, config.trajectories)
         ks = keys[lo:hi]
@@ -151,12 +157,8 @@ def generate(problem, config: DatasetConfig, directory: str, *, verbose: bool = 
         data.flush()
         meta["chunks_done"] = c + 1
         _atomic_json(meta_path, meta)
-        if verbose:
-            print(f"\r[data {name}] {hi}/{config.trajectories} trajectories "
-                  f"({(c + 1) / n_chunks:.0%}, {time.perf_counter() - t0:.0f} s)", end="",
-                  file=sys.stderr, flush=True)
-    if verbose:
-        print(file=sys.stderr)
+        progress.report(hi)
+    progress.close()
     return path
 
 

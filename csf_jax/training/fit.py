@@ -2,7 +2,7 @@
 
     trained = csf_jax.train_prior(model, jax.random.key(0), directory="runs/my_model")
     trained.save("my_prior")                       # later: csf_jax.load_prior("my_prior", model)
-    result = csf_jax.filter(trained, obs, ensemble, problem=model, key=key)
+    result = csf_jax.filter(trained, obs, ensemble, model=model, key=key)
 
 It records the particle-filter prior ensembles of ``model`` (``csf_jax.training.data``), trains the
 set encoder and score net on them (``csf_jax.training.train``) with progress lines on stderr and
@@ -13,8 +13,9 @@ same arguments to resume from the last finished data chunk and checkpoint.
 Defaults (``DATASET``, ``TRAIN``, ``NETWORK``): 200 PF rollouts of 1000 particles, 128 kept per
 recorded step, every second step, then 1500 optimizer steps of the Gaussian-base network (the
 ensemble's own Gaussian score plus a learned correction). The shipped priors' learned correction
-learns nothing beyond the Gaussian on PF-rollout data (``experiments.gaussian_loss``), so the
-smaller recipe loses nothing and fits a d <= 10 model in a few minutes on 2 CPU cores.
+learns nothing beyond the Gaussian on PF-rollout data, so the smaller recipe loses nothing and
+trains a d <= 10 model quickly on a CPU (both measured on docs/design.md, "``train_prior``'s
+recipe").
 """
 
 from __future__ import annotations

@@ -26,21 +26,32 @@ from csf_jax import _checks, networks
 from csf_jax.training import checkpoint
 from csf_jax.training.data import Dataset, sample_batch
 from csf_jax.training.loss import batch_loss, draw_noise
+from csf_jax.training.progress import Progress
 
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
     """Training settings; defaults are those of the shipped models.
 
-    steps: optimizer steps.  batch_sets: ensembles per step.  targets_per_set: ``x0`` per ensemble
-    (one encoder pass serves them all).  set_sizes: sizes of the random subsets the encoder sees,
-    cycled over steps (the encoder learns size independence; one compilation per size).
-    lr, lr_decay, lr_decay_every: Adam with a staircase step decay (the paper's StepLR).
-    grad_clip: global-norm clipping.  t_min: smallest diffusion time.  save_every: checkpoint
-    interval.  eval_every: held-out loss interval.  valid_sets: held-out ensembles.  seed.
-    mirror: flip the sign of each training ensemble (with its targets) with probability 1/2. A
-    data augmentation for odd-symmetric models (``f(-x) = -f(x)``, symmetric noises: the wells),
-    whose PF rollouts rarely visit the mirror well because the PF loses the truth after a shock.
+    Attributes:
+      steps: optimizer steps.
+      batch_sets: ensembles per step.
+      targets_per_set: ``x0`` per ensemble (one encoder pass serves them all).
+      set_sizes: sizes of the random subsets the encoder sees, cycled over steps (the encoder
+        learns size independence; one compilation per size).
+      lr: Adam's learning rate at the start.
+      lr_decay: the factor of the staircase step decay (the paper's StepLR).
+      lr_decay_every: optimizer steps between two decays.
+      grad_clip: global-norm clipping.
+      t_min: smallest diffusion time.
+      save_every: checkpoint interval.
+      eval_every: held-out loss interval.
+      valid_sets: held-out ensembles.
+      seed: the training seed.
+      mirror: flip the sign of each training ensemble (with its targets) with probability 1/2. A
+        data augmentation for odd-symmetric models (``f(-x) = -f(x)``, symmetric noises: the
+        wells), whose PF rollouts rarely visit the mirror well because the PF loses the truth after
+        a shock.
     """
 
     steps: int = 4000
@@ -159,6 +170,8 @@ def _train(problem: str, data: Dataset, out_dir: str, mngr, meta: dict,
     valid_key = jax.random.key(10_000 + config.seed)
     start, t_start, ema = int(state.step), time.perf_counter(), None
     step = start
+    progress = Progress(f"[train {problem}]", config.steps, start, unit="steps",
+                        per_unit=(config.batch_sets, "sets"), verbose=verbose)
     for step in range(start, config.steps):
         batch = make_batch(data, config, step, full=full)
         key = jax.random.fold_in(jax.random.key(config.seed), step)
@@ -169,23 +182,21 @@ def _train(problem: str, data: Dataset, out_dir: str, mngr, meta: dict,
             loss = float(loss)
             _check_loss(problem, loss, done, data.id)
             ema = loss if ema is None else 0.9 * ema + 0.1 * loss
-            rate = (done - start) / (time.perf_counter() - t_start)
-            _log(verbose, f"\r[train {problem}] step {done}/{config.steps} loss {ema:.4f} "
-                          f"{rate:.1f} steps/s {rate * config.batch_sets:.0f} sets/s", end="")
+            progress.report(done, f"loss {ema:.4f}")
         if done % config.eval_every == 0 or done == config.steps:
             v = float(eval_loss(state.params, valid[0], valid[1], valid_key, *valid[2:],
                                 network=network,
                                 t_min=config.t_min))
             _check_loss(problem, v, done, data.id)
             meta["valid_loss"].append([done, v])
-            _log(verbose, f"  valid {v:.4f}", end="")
+            progress.note(f"valid {v:.4f}", done)
         if done % config.save_every == 0 or done == config.steps:
             now = time.perf_counter()
             meta["seconds"] += now - t_start
             t_start, start = now, done
             checkpoint.save(mngr, done, state, meta, force=True)
     mngr.wait_until_finished()
-    _log(verbose, "")
+    progress.close()
     return state.params, meta
 
 
