@@ -101,7 +101,7 @@ from csf_jax.trained import TrainedPrior, load_prior
 from csf_jax.trained import deprecated_alias as _deprecated_alias
 from csf_jax.training import DatasetConfig, TrainConfig, train_prior
 
-__version__ = "0.5.0"
+__version__ = "0.6.0"
 
 __all__ = ["CSFConfig", "FilterResult", "GuidanceConfig", "Likelihood", "MixtureConfig",
            "NetworkConfig", "ObservationNoise", "ROBUST", "Step", "poisson_likelihood",

@@ -13,6 +13,9 @@ larger by more than ``threshold`` standard deviations of a chi-square with m deg
 the innovation typical again, linearised through the ensemble's mean squared Jacobian rows. Otherwise
 ``s = 0``. After an unmodelled shock ``s`` is about the squared jump; between shocks it is 0.
 
+Only entries whose stand-in's mean moves with the state (``g > 0``) take part: for the others no
+``s`` changes ``v``, so they can neither call for inflation nor be explained by it.
+
 ``statistic="median"`` is the form for heavy-tailed noise: one outlying coordinate (a Cauchy draw)
 must not read as a shock. It inflates only when more than half of the coordinates are surprised
 (``e_j^2 / v_j > 1 + threshold sqrt(2)``, the per-coordinate form of the same trigger; 3.83 at
@@ -71,8 +74,11 @@ def adaptive_inflation(prior_ens, y, model: StateSpaceModel, base: float = 0.0,
         raise ValueError(f"adaptive_inflation: statistic must be one of {STATISTICS}, got "
                          f"{statistic!r}")
     e2, v, g = innovation_statistic(prior_ens, y, model, base)
-    mask = observed(y)
-    m = jnp.sum(mask).astype(v.dtype)  # the observed entries; none: no inflation
+    # the observed entries that inflating the state can move: an entry whose Gaussian stand-in
+    # does not depend on the state (g = 0: stochastic volatility's mean 0) cannot be explained by
+    # any tau, and counting it would drive tau to its cap at every large observation
+    mask = observed(y) & (g > 0)
+    m = jnp.sum(mask).astype(v.dtype)  # none: no inflation
     if statistic == "median":
         votes = jnp.sum(mask & (e2 / v > 1.0 + threshold * jnp.sqrt(2.0)))
         s = jnp.nanmedian(jnp.where(mask, jnp.maximum(0.0, (e2 - v) / g), jnp.nan))

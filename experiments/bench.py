@@ -283,7 +283,11 @@ def main(argv=None):
     p.add_argument("--worker", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.worker:
-        return worker(json.loads(args.worker))
+        try:
+            spec = json.loads(args.worker)
+        except json.JSONDecodeError as e:
+            p.error(f"argument --worker: not a worker spec (JSON): {e}")
+        return worker(spec)
     torch_needed = any(i.startswith("torch") for i in args.impls)
     if torch_needed and importlib.util.find_spec("torch") is None:
         p.error(TORCH_MISSING)

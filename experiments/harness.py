@@ -5,9 +5,10 @@
     results = run(cases, entries, cache=Cache("results/cache"))            # cached, resumable
     write_results("results/x/results.json", results_record("x", command, rows))  # one schema
 
-* **Data.** A ``Case`` is a problem of ``csf_jax.problems`` with its settings, R runs, N particles, a
-  seed and optional missing data. Run r uses ``fold_in(key(seed), r)`` split into four streams:
-  truth and observations, initial ensemble, filter, missing entries (``run_keys``). A run does not
+* **Data.** A ``Case`` is a problem of ``csf_jax.problems`` with its settings, R runs, N
+  particles, a seed and optional missing data. Run r uses ``fold_in(key(seed), r)`` split into
+  four streams: truth and observations, initial ensemble, filter, missing entries
+  (``run_keys``). A run does not
   depend on how many others there are, and every filter sees the same data.
 * **Filters.** An ``Entry`` names a builder of ``csf_jax.methods.REGISTRY`` (the registry the tests
   use) and its settings, possibly a function of the case (a pretrained prior, say).
@@ -348,7 +349,7 @@ class Cache:
             with np.load(path) as f:
                 return Cell(f["mean"], f["finite"], float(f["seconds"]),
                             float(f["compile_seconds"]), int(f["batch"]))
-        except Exception as e:  # noqa: BLE001  (a truncated or foreign file: zip, key, value errors)
+        except Exception as e:  # noqa: BLE001  (truncated or foreign: zip, key, value errors)
             aside = path.with_suffix(".damaged")
             os.replace(path, aside)
             self.log(f"cache file {path} cannot be read ({type(e).__name__}: {e}); moved it to "
@@ -378,19 +379,28 @@ class Progress:
                   file=sys.stderr, flush=True)
 
 
-def _compute(method, model, data: Data, runs: np.ndarray):
-    """``(means (B, K, d), finite (B, K), run seconds, compile seconds)`` of ``runs``."""
-    def one(m, obs, ens, key):
-        result = csf_jax.run(m, obs, ens, model=model, key=key, check_finite=False)
-        return result.mean, result.finite
+class Compiled:
+    """One filter on one model, vmapped over runs and compiled once per batch width:
+    ``(method, data, runs)`` -> ``(means (B, K, d), finite (B, K), run seconds)``;
+    ``seconds[B]`` is the compile time of width B."""
 
-    fn = jax.jit(jax.vmap(one, in_axes=(None, 0, 0, 0)))
-    args = (method, data.obs[runs], data.ensembles[runs], data.keys[runs])
-    t0 = time.perf_counter()
-    compiled = fn.lower(*args).compile()
-    t1 = time.perf_counter()
-    mean, finite = jax.block_until_ready(compiled(*args))
-    return np.asarray(mean), np.asarray(finite), time.perf_counter() - t1, t1 - t0
+    def __init__(self, model):
+        def one(m, obs, ens, key):
+            result = csf_jax.run(m, obs, ens, model=model, key=key, check_finite=False)
+            return result.mean, result.finite
+
+        self.fn = jax.jit(jax.vmap(one, in_axes=(None, 0, 0, 0)))
+        self.programs, self.seconds = {}, {}
+
+    def __call__(self, method, data: Data, runs: np.ndarray):
+        args = (method, data.obs[runs], data.ensembles[runs], data.keys[runs])
+        if len(runs) not in self.programs:
+            t0 = time.perf_counter()
+            self.programs[len(runs)] = self.fn.lower(*args).compile()
+            self.seconds[len(runs)] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        mean, finite = jax.block_until_ready(self.programs[len(runs)](*args))
+        return np.asarray(mean), np.asarray(finite), time.perf_counter() - t0
 
 
 class Outcome(NamedTuple):
@@ -422,18 +432,20 @@ def run(cases, entries, cache: Cache, progress: bool = True) -> dict:
             if len(missing) < runs:
                 bar(f"{case.problem} {entry.label}: {runs - len(missing)} runs cached",
                     runs - len(missing))
-            width = entry.batch or len(missing) or 1
+            width, compute = entry.batch or len(missing) or 1, Compiled(model)
             for lo in range(0, len(missing), width):
                 batch = np.asarray(missing[lo:lo + width])
                 data = simulate(case) if data is None else data
-                mean, finite, seconds, compile_s = _compute(method, model, data, batch)
+                mean, finite, seconds = compute(method, data, batch)
+                compile_s = compute.seconds[len(batch)]
                 for j, r in enumerate(batch):
                     cells[r] = Cell(mean[j], finite[j], seconds / len(batch), compile_s,
                                     len(batch))
                     cache.save(case, keys[r], cells[r])
                     cache.computed.append((case.problem, entry.label, case.first_run + int(r)))
-                bar(f"{case.problem} {entry.label} runs {[int(r) + case.first_run for r in batch]}: "
-                    f"{seconds:.1f} s + compile {compile_s:.1f} s", len(batch))
+                done = [int(r) + case.first_run for r in batch]
+                bar(f"{case.problem} {entry.label} runs {done}: {seconds:.1f} s"
+                    + (f" + compile {compile_s:.1f} s" if lo == 0 else ""), len(batch))
             steps = cells[0].mean.shape[0]
             out[(case, entry.label)] = Outcome(
                 np.stack([c.mean for c in cells]), np.stack([c.finite for c in cells]),

@@ -9,6 +9,7 @@ torch loaded into the process, later XLA compilations crashed whole runs with a 
 while the PyTorch file on its own passes.
 """
 
+import gc
 import os
 from typing import NamedTuple
 
@@ -30,6 +31,19 @@ def pytest_ignore_collect(collection_path, config):
     if collection_path.name == "test_torch_equivalence.py":
         return os.environ.get(TORCH_PROCESS) != "1"
     return None
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_code():
+    """Drop each test module's compiled executables when the module ends.
+
+    XLA's CPU backend maps every compiled executable into memory; kept for the whole run, the
+    suite's thousands of executables approach the kernel's limit on memory mappings
+    (``vm.max_map_count``, 65530 by default) and a later compilation aborts the process.
+    """
+    yield
+    jax.clear_caches()
+    gc.collect()
 
 
 def simulate_linear(lg: LinearGaussian, seed: int) -> np.ndarray:

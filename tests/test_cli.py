@@ -10,7 +10,8 @@ import pytest
 
 from experiments import harness
 
-JOBS = ("run", "table", "zoo", "small_ensembles", "lorenz96", "train", "bench", "tutorial")
+JOBS = ("run", "table", "zoo", "small_ensembles", "lorenz96", "lorenz96_scaling", "train", "bench",
+        "tutorial")
 
 # measurement prose: timings, sizes, speed-ups and quoted errors
 MEASUREMENT = re.compile(
@@ -49,6 +50,9 @@ CASES = [
     ("lorenz96", ["--runs", "-1"], "--runs", ">= 1"),
     ("train", ["bogus"], "NAME", "double_well"),
     ("tutorial", ["a", "b"], "b", "unrecognized"),
+    ("bench", ["--worker", "not json"], "--worker", "not a worker spec"),
+    ("bench", ["--dims", "0"], "--dims", ">= 1"),
+    ("lorenz96_scaling", ["--dims", "3"], "--dims", ">= 40"),
 ]
 
 

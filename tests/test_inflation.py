@@ -101,3 +101,21 @@ def test_statistics_agree_for_one_observed_coordinate():
         a = adaptive_inflation(ens, jnp.array([y]), model, base=0.1)
         b = adaptive_inflation(ens, jnp.array([y]), model, base=0.1, statistic="median")
         assert float(a) == pytest.approx(float(b), rel=1e-3)
+
+
+def test_entries_the_state_cannot_move_call_for_no_inflation():
+    """Stochastic volatility's Gaussian stand-in has mean 0 whatever the state (g = 0): a large
+    observation is a large variance, which no inflation of the state explains. The default config
+    on that model keeps tau at its base, and filters as the particle filter does (with tau at its
+    cap after each large observation it ran off to means of 1e5-1e6)."""
+    model = csf_jax.problems.get("stochastic_volatility", num_steps=40)
+    truth, obs = csf_jax.simulate(model, jax.random.key(0))
+    ens = model.initial_ensemble(jax.random.key(100), 500)
+    prior_ens = ens + 0.3 * jax.random.normal(jax.random.key(1), ens.shape)
+    big = jnp.full((model.obs_dim,), 10.0)
+    assert float(adaptive_inflation(prior_ens, big, model, 0.0, 2.0, 10.0,
+                                    statistic="median")) == 0.0
+    assert float(adaptive_inflation(prior_ens, big, model, 0.0, 2.0, 10.0)) == 0.0
+    csf = csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(7))
+    pf = csf_jax.particle_filter(obs, ens, model=model, key=jax.random.key(7))
+    assert float(csf_jax.rmse(csf.mean, truth[1:])) < 1.2 * float(csf_jax.rmse(pf.mean, truth[1:]))

@@ -238,8 +238,8 @@ def _analysis(forecast, y, model, loc, config, plan):
 
 @pytest.mark.parametrize("name, radius, every, missing", [
     ("lorenz96_arctan", 1.0, 1, 0.2),      # window 3 < N: the null block
-    ("lorenz96", 4.0, 1, 0.2),            # window 15 >= N: all N eigenvectors
-    ("lorenz96", 3.0, 2, 0.2),            # every second site observed
+    pytest.param("lorenz96", 4.0, 1, 0.2, marks=pytest.mark.slow),  # window 15 >= N: all N
+    pytest.param("lorenz96", 3.0, 2, 0.2, marks=pytest.mark.slow),  # every second site observed
 ])
 def test_chunked_analysis_is_the_direct_one(x64, name, radius, every, missing):
     """Classes, member groups and chunks of sites give the same analysis as all sites at once,

@@ -109,6 +109,7 @@ def transform_devices(tmp_path_factory):
     return _worker_results(tmp_path_factory, "transform")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", list(W.TRANSFORM_CASES))
 def test_sharded_transform_equals_one_device_on_several_devices(transform_devices, case):
     want = _split(transform_devices, f"{case}/one")
@@ -168,6 +169,7 @@ def test_sharded_over_two_processes_equals_letkf(tmp_path, local_devices):
         _assert_same(_split(data, "sharded"), want, f"process {i}")
 
 
+@pytest.mark.slow
 def test_sharded_transform_over_two_processes_equals_one_device(tmp_path, x64):
     model, loc, obs, ens, datas = _two_processes(tmp_path, 1, "transform")
     ref = csf_jax.local_transform_filter(obs.astype(np.float64), ens.astype(np.float64),

@@ -15,7 +15,8 @@ HERE = pathlib.Path(__file__).resolve().parent
 
 def _run(marker: str):
     pytest.importorskip("torch", reason="torch not installed: pip install -e '.[bench]'")
-    done = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-m",
+    done = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n", "0",
+                           "-m",
                            marker, str(HERE / "test_torch_equivalence.py")],
                           env={**os.environ, TORCH_PROCESS: "1"}, capture_output=True, text=True,
                           cwd=HERE.parent)

@@ -85,6 +85,7 @@ def _bimodal_data() -> Dataset:
     return Dataset(ens.astype(np.float16), "bimodal", np.arange(16), np.arange(16, 20))
 
 
+@pytest.mark.slow
 def test_gaussian_base_model_trains_and_starts_at_the_gaussian(tmp_path):
     """A ``base="gaussian"`` network: its batches carry the whole ensembles (the base's moments),
     its initial loss is the ensemble Gaussian's (zero-init output layer), and on bimodal ensembles
