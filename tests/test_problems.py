@@ -130,3 +130,22 @@ def test_user_defined_problem_runs_everywhere():
         r = run()
         assert r.mean.shape == (50, 2)
         assert float(csf_jax.rmse(r.mean, truth[1:])) < 1.0
+
+
+def test_moderate_zoo_models_are_sign_blind_and_stable():
+    """The zoo's models of moderate dimension: the well chain's split step stays finite from any
+    state an update reaches and keeps both wells; the Lorenz-96 sensors cannot tell x from -x."""
+    from csf_jax.problems import zoo
+
+    chain = problems.get("well_chain")
+    far = jnp.linspace(-1e3, 1e3, chain.dim)
+    assert bool(jnp.isfinite(chain.drift(far)).all())
+    assert float(jnp.max(jnp.abs(chain.drift(far)))) < 10.0
+    assert bool(jnp.all(chain.drift(jnp.ones(chain.dim)) > 0.5))
+    assert bool(jnp.all(chain.drift(-jnp.ones(chain.dim)) < -0.5))
+    for name in ("lorenz96_abs", "lorenz96_square"):
+        model = problems.get(name)
+        x = model.initial_truth(jax.random.key(0))
+        np.testing.assert_allclose(model.observe(x), model.observe(-x))
+        assert model.obs_dim == model.dim // 2
+    assert set(zoo.MODERATE) <= set(problems.ZOO)
