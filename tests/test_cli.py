@@ -10,7 +10,7 @@ import pytest
 
 from experiments import harness
 
-JOBS = ("run", "table", "zoo", "small_ensembles", "lorenz96", "lorenz96_scaling", "train", "bench",
+JOBS = ("run", "table", "zoo", "defaults", "small_ensembles", "lorenz96", "lorenz96_scaling", "train", "bench",
         "tutorial")
 
 # measurement prose: timings, sizes, speed-ups and quoted errors
@@ -44,6 +44,8 @@ CASES = [
     ("table", ["--sf-runs", "0"], "--sf-runs", ">= 1"),
     ("zoo", ["--models", "bogus"], "--models", "pendulum"),
     ("zoo", ["--particles", "1"], "--particles", ">= 2"),
+    ("defaults", ["--candidates", "CSF,bogus"], "--candidates", "ROBUST"),
+    ("defaults", ["--groups", "all"], "--groups", "moderate"),
     ("small_ensembles", ["--problems", "bogus"], "--problems", "cauchy"),
     ("small_ensembles", ["--runs", "0"], "--runs", ">= 1"),
     ("lorenz96", ["--setups", "bogus"], "--setups", "identity"),
