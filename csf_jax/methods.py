@@ -11,6 +11,8 @@ there, so a new filter joins every benchmark with its module and one line here.
 
 from __future__ import annotations
 
+import inspect
+
 from csf_jax.filters.csf import method as csf
 from csf_jax.filters.driver import Method, run
 from csf_jax.filters.enkf import method as enkf
@@ -35,7 +37,13 @@ def build(name: str, **settings) -> Method:
     """The ``Method`` of the filter registered as ``name``, with ``settings`` for its builder."""
     if name not in REGISTRY:
         raise ValueError(f"unknown filter {name!r}; choose from {', '.join(REGISTRY)}")
-    return REGISTRY[name](**settings)
+    builder = REGISTRY[name]
+    accepted = inspect.signature(builder).parameters
+    unknown = sorted(set(settings) - set(accepted))
+    if unknown and not any(p.kind is p.VAR_KEYWORD for p in accepted.values()):
+        raise TypeError(f"methods.build({name!r}): unknown setting(s) {', '.join(unknown)}; "
+                        f"methods.{name} takes {', '.join(accepted) or 'none'}")
+    return builder(**settings)
 
 
 __all__ = ["Method", "REGISTRY", "build", "csf", "enkf", "ensf", "kalman", "letkf", "local_csf",

@@ -83,6 +83,12 @@ class MixtureConfig:
       iterations, proposals: Gauss-Newton steps and importance draws per particle component.
       ensemble_iterations, ensemble_proposals: the same for the ensemble and shock components (one
         each, so they can afford more: their evidence decides between readings).
+      particle_ess: 0 (off), or a fraction ``c`` of N: where the particle components' evidence
+        weights have an effective sample size ``ESS < c N``, the particle reading's log-odds for
+        the step, and its log Bayes factor into the memory, drop by ``log(c N / ESS)``. The evidence
+        compares how well each reading predicts ``y``, not how many particles carry its posterior;
+        in moderate dimension a few particles predict well and the posterior collapses onto them
+        (docs/defaults.md).
     """
 
     particles: bool = True
@@ -94,6 +100,7 @@ class MixtureConfig:
     proposals: int = 8
     ensemble_iterations: int = 12
     ensemble_proposals: int = 64
+    particle_ess: float = 0.0
 
     def __post_init__(self):
         _checks.check_fields(self)
@@ -110,6 +117,9 @@ class MixtureConfig:
                 and math.isfinite(self.particle_logodds)):
             raise ValueError(f"MixtureConfig.particle_logodds must be a finite number, got "
                              f"{self.particle_logodds!r}")
+        if not (isinstance(self.particle_ess, (int, float)) and 0.0 <= self.particle_ess <= 1.0):
+            raise ValueError(f"MixtureConfig.particle_ess must lie in [0, 1], got "
+                             f"{self.particle_ess!r}")
         scales = self.shock_scales
         if not isinstance(scales, tuple) or not scales or not all(
                 isinstance(v, (int, float)) and v > 0 and math.isfinite(v) for v in scales):
@@ -218,6 +228,9 @@ def select(model: StateSpaceModel, config: MixtureConfig, key, y, centers, prior
             model, y, k_part, centers, q_prec, config.iterations, config.proposals, guide)
         log_z_part = jnp.where(jnp.isfinite(log_z_part), log_z_part, -jnp.inf)
         log_bf = logsumexp(log_z_part) - jnp.log(n) - log_z_ens[0]
+        if config.particle_ess > 0:
+            penalty = ess_penalty(log_z_part, config.particle_ess)
+            odds, log_bf = odds - penalty, log_bf - penalty
         prior_part = log_calm + jax.nn.log_sigmoid(odds) - jnp.log(n)
         prior_ens_comp = log_calm + jax.nn.log_sigmoid(-odds)
     else:
@@ -250,6 +263,16 @@ def select(model: StateSpaceModel, config: MixtureConfig, key, y, centers, prior
         draws = jnp.where((kind > 1)[:, None], shock_draws, draws)
     log_bf = jnp.where(informed & jnp.isfinite(log_bf), log_bf, 0.0)
     return Selection(kind, draws, inflation, log_bf, particle_weight, shock_weight, informed)
+
+
+def ess_penalty(log_weights, fraction: float):
+    """``max(0, log(fraction N / ESS))`` of unnormalised ``log_weights (N,)`` (``-inf`` entries
+    count as weight 0): how far the weights' effective sample size falls below ``fraction N``."""
+    n = log_weights.shape[0]
+    w = jnp.exp(log_weights - logsumexp(log_weights))
+    ess = 1.0 / jnp.maximum(jnp.sum(w * w), 1.0 / n)
+    penalty = jnp.maximum(0.0, jnp.log(fraction * n) - jnp.log(ess))
+    return jnp.where(jnp.isfinite(penalty), penalty, 0.0)
 
 
 def _systematic(key, log_weights, n: int):

@@ -22,7 +22,8 @@ from __future__ import annotations
 import dataclasses
 
 import csf_jax
-from csf_jax import InflationConfig
+from csf_jax import InflationConfig, PriorConfig
+from csf_jax.mixture import MixtureConfig
 from csf_jax.problems.zoo import MODERATE, ZOO_GAPS
 from experiments import harness, zoo
 
@@ -31,6 +32,9 @@ CANDIDATES = {
     "ROBUST": csf_jax.ROBUST,
     # the mixture prior with the innovation-triggered inflation of the ensemble component kept
     "ROBUST+adaptive": dataclasses.replace(csf_jax.ROBUST, inflation=InflationConfig()),
+    # the mixture prior with the particle reading discounted where its evidence weights collapse
+    "ROBUST+ess": dataclasses.replace(csf_jax.ROBUST, prior=PriorConfig(
+        mixture=MixtureConfig(particle_ess=0.1))),
 }
 
 # (problem, runs): the table's columns where the candidates differ most, few runs each

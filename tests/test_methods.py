@@ -91,6 +91,9 @@ def test_bad_methods_and_settings_are_one_line_errors():
         csf_jax.run(csf_jax.particle_filter, obs, ens, model=LINEAR, key=KEY)
     with pytest.raises(ValueError, match="unknown filter 'kalmann'; choose from csf, enkf"):
         methods.build("kalmann")
+    with pytest.raises(TypeError, match=r"methods.build\('enkf'\): unknown setting\(s\) radius; "
+                                        r"methods.enkf takes inflation"):
+        methods.build("enkf", radius=3)
     with pytest.raises(TypeError, match="letkf: needs localization=.*ring_localization"):
         csf_jax.letkf(obs, ens, model=RING, key=KEY)
     with pytest.raises(TypeError, match="local_transform_filter: config must be a "

@@ -80,6 +80,38 @@ def test_selection_limits():
     assert float(jnp.min(chosen)) > 0.5
 
 
+def test_ess_penalty_limits():
+    """Even weights: no penalty; one particle carries everything: ``log(c N)``; ESS at or above
+    ``c N``: none; ``-inf`` weights count as zero weight."""
+    n = 200
+    assert float(mixture.ess_penalty(jnp.zeros(n), 0.1)) == 0.0
+    one = jnp.full((n,), -jnp.inf).at[3].set(0.0)
+    np.testing.assert_allclose(float(mixture.ess_penalty(one, 0.1)), np.log(0.1 * n), rtol=1e-5)
+    half = jnp.where(jnp.arange(n) < n // 2, 0.0, -jnp.inf)
+    assert float(mixture.ess_penalty(half, 0.5)) == 0.0
+    np.testing.assert_allclose(float(mixture.ess_penalty(half, 1.0)), np.log(2.0), rtol=1e-5)
+
+
+def test_particle_ess_hands_a_collapsed_particle_reading_to_the_ensemble():
+    """100 particles spread over [-1.5, 1.5] seen through the double well's sharp cubic sensor
+    (noise 0.1): few particles explain y = 1, and the particle reading wins the evidence (measured:
+    weight 0.91 at prior log-odds 2). With ``particle_ess = 0.5`` its odds and log Bayes factor
+    drop by ``log(c N / ESS)`` (measured: weight 0.63, log Bayes factor 0.30 to -1.48)."""
+    model = csf_jax.problems.get("double_well")
+    key = jax.random.key(0)
+    centers = jnp.linspace(-1.5, 1.5, 100)[:, None]
+    prior_ens = centers + 0.05 * jax.random.normal(key, centers.shape)
+    cov = jnp.cov(prior_ens.T).reshape(1, 1)
+    y = jnp.array([1.0])
+    plain = mixture.select(model, MixtureConfig(shock_hazard=0.0), key, y, centers, prior_ens,
+                           cov, 0.0, 2.0, 1.0)
+    ess = mixture.select(model, MixtureConfig(shock_hazard=0.0, particle_ess=0.5), key, y,
+                         centers, prior_ens, cov, 0.0, 2.0, 1.0)
+    assert float(plain.particle_weight) > 0.85
+    assert float(ess.particle_weight) < 0.75
+    assert float(ess.log_bf) < float(plain.log_bf) - 1.0
+
+
 @pytest.mark.slow
 def test_shock_component_takes_over_after_a_jump():
     """An observation far outside the ensemble's reach: the shock components win the evidence."""
@@ -120,7 +152,8 @@ def test_mixture_csf_tracks_kalman(x64):
 def test_bad_mixture_config_is_refused():
     for bad in (dict(memory=1.0), dict(shock_hazard=-0.1), dict(iterations=0),
                 dict(shock_scales=()), dict(shock_scales=(1.0, -2.0)),
-                dict(particle_logodds=float("nan"))):
+                dict(particle_logodds=float("nan")), dict(particle_ess=1.5),
+                dict(particle_ess=-0.1)):
         with pytest.raises(ValueError, match="MixtureConfig"):
             MixtureConfig(**bad)
     with pytest.raises(TypeError, match="mixture"):
