@@ -5,8 +5,9 @@ problems and on the zoo.
         [--particles 1000] [--seed 7] [--out results/defaults] [--page docs/defaults.md]
 
 A candidate is a ``CSFConfig`` (``CANDIDATES``), called as a user would on a model of their own:
-``params=None`` (the ensemble's Gaussian as the prior score; ``csf_jax.gaussian_prior()`` where the
-process noise is not i.i.d.), no per-model setting. Three groups of cases (``GROUPS``):
+``params=None`` (no network: the exact particle mixture without the mixture prior, the ensemble's
+Gaussian for its ensemble component with it; ``csf_jax.gaussian_prior()`` where the process noise
+is not i.i.d.), no per-model setting, as the zoo calls CSF. Three groups of cases (``GROUPS``):
 
 * ``table``: the paper's problems whose columns the candidates disagree on, against the near-exact
   reference on the same runs;
@@ -44,13 +45,8 @@ GROUPS = ("table", "zoo", "moderate")
 
 
 def entry(label: str):
-    config = CANDIDATES[label]
-
-    def settings(case, model):
-        prior = None if model.process_noise is None else csf_jax.gaussian_prior()
-        return {"config": config, "prior": prior}
-
-    return harness.Entry(label, "csf", settings, batch=2)
+    """The candidate ``label`` as the zoo calls CSF (``experiments.zoo._csf``)."""
+    return harness.Entry(label, "csf", zoo._csf(CANDIDATES[label]), batch=2)
 
 
 def cases(groups, particles: int, seed: int) -> list:
