@@ -28,14 +28,20 @@ from csf_jax.mixture import MixtureConfig
 from csf_jax.problems.zoo import MODERATE, ZOO_GAPS
 from experiments import harness, zoo
 
+OBSERVED = dataclasses.replace(csf_jax.ROBUST, prior=PriorConfig(
+    mixture=MixtureConfig(shock_span="observed")))
+OBSERVED_ESS = dataclasses.replace(csf_jax.ROBUST, prior=PriorConfig(
+    mixture=MixtureConfig(shock_span="observed", particle_ess=2.5)))
 CANDIDATES = {
     "CSF": csf_jax.CSFConfig(),
     "ROBUST": csf_jax.ROBUST,
-    # the mixture prior with the innovation-triggered inflation of the ensemble component kept
-    "ROBUST+adaptive": dataclasses.replace(csf_jax.ROBUST, inflation=InflationConfig()),
-    # the mixture prior with the particle reading discounted where its evidence weights collapse
-    "ROBUST+ess": dataclasses.replace(csf_jax.ROBUST, prior=PriorConfig(
-        mixture=MixtureConfig(particle_ess=0.1))),
+    # the mixture prior with its shocks widened along the observed directions alone
+    "ROBUST+observed": OBSERVED,
+    # the same with the particle reading discounted where its evidence weights have fewer than
+    # 2.5 d effective particles
+    "ROBUST+observed+ess": OBSERVED_ESS,
+    # the same with the innovation-triggered inflation of the ensemble component kept
+    "ROBUST+observed+ess+adaptive": dataclasses.replace(OBSERVED_ESS, inflation=InflationConfig()),
 }
 
 # (problem, runs): the table's columns where the candidates differ most, few runs each

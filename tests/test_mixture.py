@@ -81,22 +81,23 @@ def test_selection_limits():
 
 
 def test_ess_penalty_limits():
-    """Even weights: no penalty; one particle carries everything: ``log(c N)``; ESS at or above
-    ``c N``: none; ``-inf`` weights count as zero weight."""
+    """Even weights: no penalty; one particle carries everything: ``log(target)``; ESS at or above
+    the target: none; ``-inf`` weights count as zero weight."""
     n = 200
-    assert float(mixture.ess_penalty(jnp.zeros(n), 0.1)) == 0.0
+    assert float(mixture.ess_penalty(jnp.zeros(n), 20.0)) == 0.0
     one = jnp.full((n,), -jnp.inf).at[3].set(0.0)
-    np.testing.assert_allclose(float(mixture.ess_penalty(one, 0.1)), np.log(0.1 * n), rtol=1e-5)
+    np.testing.assert_allclose(float(mixture.ess_penalty(one, 20.0)), np.log(20.0), rtol=1e-5)
     half = jnp.where(jnp.arange(n) < n // 2, 0.0, -jnp.inf)
-    assert float(mixture.ess_penalty(half, 0.5)) == 0.0
-    np.testing.assert_allclose(float(mixture.ess_penalty(half, 1.0)), np.log(2.0), rtol=1e-5)
+    assert float(mixture.ess_penalty(half, 100.0)) == 0.0
+    np.testing.assert_allclose(float(mixture.ess_penalty(half, 200.0)), np.log(2.0), rtol=1e-5)
 
 
 def test_particle_ess_hands_a_collapsed_particle_reading_to_the_ensemble():
     """100 particles spread over [-1.5, 1.5] seen through the double well's sharp cubic sensor
     (noise 0.1): few particles explain y = 1, and the particle reading wins the evidence (measured:
-    weight 0.91 at prior log-odds 2). With ``particle_ess = 0.5`` its odds and log Bayes factor
-    drop by ``log(c N / ESS)`` (measured: weight 0.63, log Bayes factor 0.30 to -1.48)."""
+    weight 0.91 at prior log-odds 2). With ``particle_ess = 50`` (a target of 50 effective
+    particles in d = 1) its odds and log Bayes factor drop by ``log(50 / ESS)`` (measured: weight
+    0.63, log Bayes factor 0.30 to -1.48); with ``particle_ess = 2`` (target 2) they do not."""
     model = csf_jax.problems.get("double_well")
     key = jax.random.key(0)
     centers = jnp.linspace(-1.5, 1.5, 100)[:, None]
@@ -105,9 +106,12 @@ def test_particle_ess_hands_a_collapsed_particle_reading_to_the_ensemble():
     y = jnp.array([1.0])
     plain = mixture.select(model, MixtureConfig(shock_hazard=0.0), key, y, centers, prior_ens,
                            cov, 0.0, 2.0, 1.0)
-    ess = mixture.select(model, MixtureConfig(shock_hazard=0.0, particle_ess=0.5), key, y,
+    ess = mixture.select(model, MixtureConfig(shock_hazard=0.0, particle_ess=50.0), key, y,
+                         centers, prior_ens, cov, 0.0, 2.0, 1.0)
+    low = mixture.select(model, MixtureConfig(shock_hazard=0.0, particle_ess=2.0), key, y,
                          centers, prior_ens, cov, 0.0, 2.0, 1.0)
     assert float(plain.particle_weight) > 0.85
+    assert float(low.log_bf) == float(plain.log_bf)
     assert float(ess.particle_weight) < 0.75
     assert float(ess.log_bf) < float(plain.log_bf) - 1.0
 
@@ -126,6 +130,49 @@ def test_shock_component_takes_over_after_a_jump():
     quiet = mixture.select(model, MixtureConfig(), key, jnp.zeros(3) + 1e-3, centers, prior_ens,
                            cov, 0.0, 2.0, 1.0)
     assert float(quiet.shock_weight) < 0.01
+
+
+def test_seen_directions():
+    """An elementwise sensor of sites 0 and 2 of 4: ``diag(1, 0, 1, 0)``; a missing entry drops its
+    site; a dense linear row gives its unit vector's outer product; a gradient that vanishes at
+    a member (``x^2`` at 0) counts 0 there."""
+    lg = linear_gaussian(4, 2, H=np.eye(4)[::2])
+    model = to_model(lg)
+    ens = jax.random.normal(jax.random.key(0), (30, 4))
+    np.testing.assert_allclose(mixture.seen_directions(model, jnp.zeros(2), ens),
+                               np.diag([1.0, 0.0, 1.0, 0.0]), atol=1e-6)
+    np.testing.assert_allclose(mixture.seen_directions(model, jnp.array([0.0, jnp.nan]), ens),
+                               np.diag([1.0, 0.0, 0.0, 0.0]), atol=1e-6)
+    row = np.array([[3.0, 4.0, 0.0, 0.0]])
+    dense = to_model(linear_gaussian(4, 1, H=row))
+    np.testing.assert_allclose(mixture.seen_directions(dense, jnp.zeros(1), ens),
+                               row.T @ row / 25.0, atol=1e-6)
+    square = model._replace(observe=lambda x: x[::2] ** 2)
+    half = ens.at[:15, 0].set(0.0)
+    np.testing.assert_allclose(mixture.seen_directions(square, jnp.zeros(2), half),
+                               np.diag([0.5, 0.0, 1.0, 0.0]), atol=1e-6)
+
+
+def test_observed_span_shocks_move_only_the_observed_coordinates():
+    """Three coordinates, the first observed: an observation far outside the ensemble's reach is
+    explained by a shock. With ``shock_span="observed"`` its members move the observed coordinate
+    to y and leave the two unobserved ones at the ensemble's spread (0.1); widened isotropically
+    (the default) the shock spreads them by its own scale."""
+    model = to_model(linear_gaussian(3, 1, H=np.eye(3)[:1], r_std=0.1))
+    key = jax.random.key(0)
+    centers = 0.1 * jax.random.normal(key, (200, 3))
+    prior_ens = centers + 0.01 * jax.random.normal(jax.random.key(1), (200, 3))
+    cov = jnp.cov(prior_ens.T)
+    sel = mixture.select(model, MixtureConfig(shock_span="observed"), key, jnp.array([8.0]),
+                         centers, prior_ens, cov, 0.0, 2.0, 1.0)
+    assert float(sel.shock_weight) > 0.9
+    moved = sel.draws[sel.kind > 1]
+    assert abs(float(jnp.mean(moved[:, 0])) - 8.0) < 0.5
+    assert float(jnp.max(jnp.std(moved[:, 1:], axis=0))) < 0.3
+    assert float(jnp.max(jnp.abs(moved[:, 1:]))) < 1.0
+    wide = mixture.select(model, MixtureConfig(), key, jnp.array([8.0]), centers, prior_ens, cov,
+                          0.0, 2.0, 1.0)
+    assert float(jnp.max(jnp.std(wide.draws[wide.kind > 1][:, 1:], axis=0))) > 1.0
 
 
 def test_memory_accumulates_with_forgetting():
@@ -152,7 +199,7 @@ def test_mixture_csf_tracks_kalman(x64):
 def test_bad_mixture_config_is_refused():
     for bad in (dict(memory=1.0), dict(shock_hazard=-0.1), dict(iterations=0),
                 dict(shock_scales=()), dict(shock_scales=(1.0, -2.0)),
-                dict(particle_logodds=float("nan")), dict(particle_ess=1.5),
+                dict(particle_logodds=float("nan")), dict(particle_ess=float("inf")), dict(shock_span="all"),
                 dict(particle_ess=-0.1)):
         with pytest.raises(ValueError, match="MixtureConfig"):
             MixtureConfig(**bad)
