@@ -83,8 +83,8 @@ class MixtureConfig:
         grid's coarseness, against the ``exp(-jump^2 / spread^2)`` the ensemble pays).
       shock_span: "isotropic": a shock widens the prior along every direction (``tau^2 I``);
         "observed": along the directions the step's observed entries see (``seen_directions``),
-        the unobserved coordinates keep the ensemble's spread. Isotropic by measurement
-        (docs/defaults.md): at N = 50 the observed span lost on Lorenz-63 seen through x (1.64x
+        the unobserved coordinates keep the ensemble's spread. Isotropic by measurement (held-out
+        runs, CHANGELOG): at N = 50 the observed span lost on Lorenz-63 seen through x (1.64x
         against 1.12x the better of PF and EnKF), the pendulum and bearings, where a jump seen in
         the observed coordinates also moved the unobserved ones.
       iterations, proposals: Gauss-Newton steps and importance draws per particle component.
@@ -99,6 +99,15 @@ class MixtureConfig:
         dimensions it is degenerate, and the next steps' ensemble collapses onto it
         (docs/defaults.md). The threshold is in dimensions, not a fraction of N: a 3-d model
         keeps its particles at any N, Lorenz-96 at d = 40 hands them over at N = 50.
+      particle_kernel: 0 (off: the components ``N(f(x_i), Q)``), or a factor ``a`` in [0, 1] on
+        Silverman's bandwidth ``h^2 = (4 / ((d + 2) N))^(2 / (d + 4))`` (``silverman``): the
+        components become the kernels ``N(m + s (f(x_i) - m), Q + a h^2 C)`` of a regularised
+        particle filter (``m`` the mean of the ``f(x_i)``, ``C`` the prior ensemble's
+        covariance), shrunk by ``s = sqrt(1 - a h^2)`` so that the mixture keeps the ensemble's
+        mean and about its covariance. Where no particle is within ``sqrt(Q)`` of the
+        observation's preimage, the kernels still reach it, and the particle reading keeps
+        evidence the point components lose to the ensemble's Gaussian (folding's first steps,
+        docs/defaults.md); as N grows the kernels shrink to the points.
     """
 
     particles: bool = True
@@ -112,6 +121,7 @@ class MixtureConfig:
     ensemble_iterations: int = 12
     ensemble_proposals: int = 64
     particle_ess: float = 0.0
+    particle_kernel: float = 0.0
 
     def __post_init__(self):
         _checks.check_fields(self)
@@ -132,6 +142,10 @@ class MixtureConfig:
                 and math.isfinite(self.particle_ess)):
             raise ValueError(f"MixtureConfig.particle_ess must be a finite number >= 0, got "
                              f"{self.particle_ess!r}")
+        if not (isinstance(self.particle_kernel, (int, float)) and 0.0 <= self.particle_kernel
+                <= 1.0):
+            raise ValueError(f"MixtureConfig.particle_kernel must lie in [0, 1], got "
+                             f"{self.particle_kernel!r}")
         if self.shock_span not in ("observed", "isotropic"):
             raise ValueError(f"MixtureConfig.shock_span must be 'observed' or 'isotropic', got "
                              f"{self.shock_span!r}")
@@ -241,9 +255,14 @@ def select(model: StateSpaceModel, config: MixtureConfig, key, y, centers, prior
     log_hazard = jnp.where(informed, jnp.log(hazard), -jnp.inf)
     log_calm = jnp.where(informed, jnp.log1p(-hazard), 0.0)
     if uses_particles(config, model):
-        q_prec = precision(process_cov(model, dtype) + 1e-12 * eye)
+        kernels, q_cov = centers, process_cov(model, dtype)
+        if config.particle_kernel > 0:
+            h2 = config.particle_kernel * silverman(n, d) ** 2
+            centre = centers.mean(0)
+            kernels, q_cov = centre + math.sqrt(1.0 - h2) * (centers - centre), q_cov + h2 * cov
+        q_prec = precision(q_cov + 1e-12 * eye)
         log_z_part, draws, _, _ = _component_evidence(
-            model, y, k_part, centers, q_prec, config.iterations, config.proposals, guide)
+            model, y, k_part, kernels, q_prec, config.iterations, config.proposals, guide)
         log_z_part = jnp.where(jnp.isfinite(log_z_part), log_z_part, -jnp.inf)
         log_bf = logsumexp(log_z_part) - jnp.log(n) - log_z_ens[0]
         if config.particle_ess > 0:
@@ -292,12 +311,18 @@ def seen_directions(model: StateSpaceModel, y, ensemble):
     With ``shock_span="observed"`` the shock components widen the prior along these directions
     alone: only the entries ``y`` observes can tell a jump from the ensemble, and widened
     isotropically a shock that explains the observed coordinates spreads the unobserved ones by
-    up to 64 ensemble spreads (folding's third coordinate at N = 50: docs/defaults.md)."""
+    up to 64 ensemble spreads (folding's third coordinate at N = 50)."""
     jac = jax.vmap(jax.jacfwd(model.observe))(ensemble)                     # (N, m, d)
     norm = jnp.sqrt(jnp.sum(jac * jac, -1, keepdims=True))
     unit = jnp.where(norm > 0, jac / jnp.where(norm > 0, norm, 1.0), 0.0)
     unit = jnp.where(observed(y)[None, :, None] & jnp.isfinite(unit), unit, 0.0)
     return jnp.einsum("nji,njk->ik", unit, unit) / ensemble.shape[0]
+
+
+def silverman(n: int, d: int) -> float:
+    """Silverman's bandwidth ``(4 / ((d + 2) n))^(1 / (d + 4))`` of a Gaussian kernel density
+    estimate from ``n`` draws in ``d`` dimensions, in units of their standard deviation."""
+    return (4.0 / ((d + 2) * n)) ** (1.0 / (d + 4))
 
 
 def ess_penalty(log_weights, target: float):

@@ -23,25 +23,26 @@ from __future__ import annotations
 import dataclasses
 
 import csf_jax
-from csf_jax import InflationConfig, PriorConfig
+from csf_jax import PriorConfig
 from csf_jax.mixture import MixtureConfig
 from csf_jax.problems.zoo import MODERATE, ZOO_GAPS
 from experiments import harness, zoo
 
-OBSERVED = dataclasses.replace(csf_jax.ROBUST, prior=PriorConfig(
-    mixture=MixtureConfig(shock_span="observed")))
-OBSERVED_ESS = dataclasses.replace(csf_jax.ROBUST, prior=PriorConfig(
-    mixture=MixtureConfig(shock_span="observed", particle_ess=2.5)))
+
+def _mixture(**settings) -> csf_jax.CSFConfig:
+    """``csf_jax.ROBUST`` with ``MixtureConfig(**settings)``."""
+    return dataclasses.replace(csf_jax.ROBUST, prior=PriorConfig(mixture=MixtureConfig(**settings)))
+
+
 CANDIDATES = {
     "CSF": csf_jax.CSFConfig(),
     "ROBUST": csf_jax.ROBUST,
-    # the mixture prior with its shocks widened along the observed directions alone
-    "ROBUST+observed": OBSERVED,
-    # the same with the particle reading discounted where its evidence weights have fewer than
-    # 2.5 d effective particles
-    "ROBUST+observed+ess": OBSERVED_ESS,
-    # the same with the innovation-triggered inflation of the ensemble component kept
-    "ROBUST+observed+ess+adaptive": dataclasses.replace(OBSERVED_ESS, inflation=InflationConfig()),
+    # the particle reading discounted where its evidence weights have fewer than 2.5 d
+    # effective particles
+    "ROBUST+ess": _mixture(particle_ess=2.5),
+    # the particle components widened to a regularised particle filter's kernels
+    "ROBUST+kernel": _mixture(particle_kernel=1.0),
+    "ROBUST+kernel+ess": _mixture(particle_kernel=1.0, particle_ess=2.5),
 }
 
 # (problem, runs): the table's columns where the candidates differ most, few runs each

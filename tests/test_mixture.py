@@ -116,6 +116,39 @@ def test_particle_ess_hands_a_collapsed_particle_reading_to_the_ensemble():
     assert float(ess.log_bf) < float(plain.log_bf) - 1.0
 
 
+def test_silverman_bandwidth():
+    """In one dimension Silverman's rule is the textbook ``1.06 n^(-1/5)`` standard deviations;
+    it shrinks with n and grows towards 1 with d."""
+    np.testing.assert_allclose(mixture.silverman(1000, 1), 1.0592 * 1000 ** -0.2, rtol=1e-4)
+    assert mixture.silverman(1000, 3) < mixture.silverman(50, 3) < mixture.silverman(50, 40) < 1.0
+
+
+def test_particle_kernels_reach_an_observation_no_particle_explains():
+    """The same 100 particles on [-1.5, 1.5] and the cubic sensor, now seen at y = 8 (x = 2),
+    0.5 beyond the last particle, 8 process-noise spreads: the point components lose the evidence
+    to the ensemble's Gaussian (measured: particle weight 6e-13, log Bayes factor -30); the
+    regularised kernels (``particle_kernel = 1``, bandwidth 0.42 ensemble spreads) reach x = 2 and
+    keep it (measured: weight 0.79, their members at 2.00). Where particles do explain y (y = 1)
+    the kernels change little (weight 0.91 either way)."""
+    model = csf_jax.problems.get("double_well")
+    key = jax.random.key(0)
+    centers = jnp.linspace(-1.5, 1.5, 100)[:, None]
+    prior_ens = centers + model.process_std * jax.random.normal(key, centers.shape)
+    cov = jnp.cov(prior_ens.T).reshape(1, 1)
+
+    def select(y, kernel):
+        return mixture.select(model, MixtureConfig(shock_hazard=0.0, particle_kernel=kernel), key,
+                              jnp.array([y]), centers, prior_ens, cov, 0.0, 2.0, 1.0)
+
+    points, kernels = select(8.0, 0.0), select(8.0, 1.0)
+    assert float(points.particle_weight) < 1e-6
+    assert float(kernels.particle_weight) > 0.5
+    members = kernels.draws[kernels.kind == 0]
+    np.testing.assert_allclose(np.asarray(members), 2.0, atol=0.05)
+    near_points, near_kernels = select(1.0, 0.0), select(1.0, 1.0)
+    assert abs(float(near_kernels.particle_weight) - float(near_points.particle_weight)) < 0.05
+
+
 @pytest.mark.slow
 def test_shock_component_takes_over_after_a_jump():
     """An observation far outside the ensemble's reach: the shock components win the evidence."""
@@ -200,7 +233,8 @@ def test_bad_mixture_config_is_refused():
     for bad in (dict(memory=1.0), dict(shock_hazard=-0.1), dict(iterations=0),
                 dict(shock_scales=()), dict(shock_scales=(1.0, -2.0)),
                 dict(particle_logodds=float("nan")), dict(particle_ess=float("inf")), dict(shock_span="all"),
-                dict(particle_ess=-0.1)):
+                dict(particle_ess=-0.1), dict(particle_kernel=1.5), dict(particle_kernel=-0.1),
+                dict(particle_kernel=float("nan"))):
         with pytest.raises(ValueError, match="MixtureConfig"):
             MixtureConfig(**bad)
     with pytest.raises(TypeError, match="mixture"):
