@@ -241,8 +241,10 @@ def select(model: StateSpaceModel, config: MixtureConfig, key, y, centers, prior
     inflation = jnp.concatenate([jnp.reshape(jnp.asarray(base_inflation, dtype), (1,)),
                                  shock_tau2 if shocks else jnp.zeros((0,), dtype)])
     # the ensemble component's inflation is isotropic; a shock's spans shock_span
-    seen = seen_directions(model, y, prior_ens) if config.shock_span == "observed" else eye
-    shape = jnp.stack([eye] + [seen] * (inflation.shape[0] - 1))
+    shape = eye
+    if config.shock_span == "observed":
+        seen = seen_directions(model, y, prior_ens)
+        shape = jnp.stack([eye] + [seen] * (inflation.shape[0] - 1))
     precisions = precision(cov[None] + inflation[:, None, None] * shape)    # (1 + G, d, d)
     ens_keys = jax.random.split(k_ens, precisions.shape[0])
     log_z_ens, _, u_ens, chol_ens = jax.vmap(lambda p, k: _component_evidence(

@@ -92,6 +92,15 @@ def test_ess_penalty_limits():
     np.testing.assert_allclose(float(mixture.ess_penalty(half, 200.0)), np.log(2.0), rtol=1e-5)
 
 
+def _spread_particles(noise: float):
+    """100 particle centres on [-1.5, 1.5] in d = 1, their prior ensemble (centres plus
+    ``noise`` N(0, 1) draws) and its ``(1, 1)`` covariance, with the key that drew them."""
+    key = jax.random.key(0)
+    centers = jnp.linspace(-1.5, 1.5, 100)[:, None]
+    prior_ens = centers + noise * jax.random.normal(key, centers.shape)
+    return key, centers, prior_ens, jnp.cov(prior_ens.T).reshape(1, 1)
+
+
 def test_particle_ess_hands_a_collapsed_particle_reading_to_the_ensemble():
     """100 particles spread over [-1.5, 1.5] seen through the double well's sharp cubic sensor
     (noise 0.1): few particles explain y = 1, and the particle reading wins the evidence (measured:
@@ -99,10 +108,7 @@ def test_particle_ess_hands_a_collapsed_particle_reading_to_the_ensemble():
     particles in d = 1) its odds and log Bayes factor drop by ``log(50 / ESS)`` (measured: weight
     0.63, log Bayes factor 0.30 to -1.48); with ``particle_ess = 2`` (target 2) they do not."""
     model = csf_jax.problems.get("double_well")
-    key = jax.random.key(0)
-    centers = jnp.linspace(-1.5, 1.5, 100)[:, None]
-    prior_ens = centers + 0.05 * jax.random.normal(key, centers.shape)
-    cov = jnp.cov(prior_ens.T).reshape(1, 1)
+    key, centers, prior_ens, cov = _spread_particles(0.05)
     y = jnp.array([1.0])
     plain = mixture.select(model, MixtureConfig(shock_hazard=0.0), key, y, centers, prior_ens,
                            cov, 0.0, 2.0, 1.0)
@@ -131,10 +137,7 @@ def test_particle_kernels_reach_an_observation_no_particle_explains():
     keep it (measured: weight 0.79, their members at 2.00). Where particles do explain y (y = 1)
     the kernels change little (weight 0.91 either way)."""
     model = csf_jax.problems.get("double_well")
-    key = jax.random.key(0)
-    centers = jnp.linspace(-1.5, 1.5, 100)[:, None]
-    prior_ens = centers + model.process_std * jax.random.normal(key, centers.shape)
-    cov = jnp.cov(prior_ens.T).reshape(1, 1)
+    key, centers, prior_ens, cov = _spread_particles(model.process_std)
 
     def select(y, kernel):
         return mixture.select(model, MixtureConfig(shock_hazard=0.0, particle_kernel=kernel), key,
@@ -232,8 +235,9 @@ def test_mixture_csf_tracks_kalman(x64):
 def test_bad_mixture_config_is_refused():
     for bad in (dict(memory=1.0), dict(shock_hazard=-0.1), dict(iterations=0),
                 dict(shock_scales=()), dict(shock_scales=(1.0, -2.0)),
-                dict(particle_logodds=float("nan")), dict(particle_ess=float("inf")), dict(shock_span="all"),
-                dict(particle_ess=-0.1), dict(particle_kernel=1.5), dict(particle_kernel=-0.1),
+                dict(particle_logodds=float("nan")), dict(particle_ess=float("inf")),
+                dict(shock_span="all"), dict(particle_ess=-0.1), dict(particle_kernel=1.5),
+                dict(particle_kernel=-0.1),
                 dict(particle_kernel=float("nan"))):
         with pytest.raises(ValueError, match="MixtureConfig"):
             MixtureConfig(**bad)
