@@ -327,11 +327,11 @@ def main(argv=None):
     record = harness.results_record("bench", harness.command("bench", argv), rows,
                                     sampler=sampler, loadavg=list(os.getloadavg()))
     m = record["machine"]
-    lines = [f"Made by `{record['command']}` on {record['date']}, {m['cpu']} ({m['cpu_count']} "
-             f"cores). Sampler: {sampler}; seconds per filter step, the median of "
+    lines = [f"Made by `{record['command']}` on {record['date']}, {harness.where(m)}. Sampler: {sampler}; seconds per filter step, the median of "
              f"{args.repeats} timed runs of {args.filter_steps} filter steps; compilation "
              f"apart.", ""] + table(rows)
-    tag = f"{args.guidance}_L{args.steps}"
+    # a GPU's rows go to blocks of their own, so that a page keeps its CPU rows beside them
+    tag = f"{args.guidance}_L{args.steps}" + ("" if jax.default_backend() == "cpu" else "_gpu")
     harness.publish(args, record, lines, f"results_{tag}.json", tag)
 
 

@@ -12,7 +12,10 @@ before them) minus its resident set just before them, so it counts what the filt
 the interpreter, the libraries, the inputs or the compiler. The subprocess runs with
 ``MALLOC_MMAP_THRESHOLD_=131072``: glibc then maps every buffer above 128 KiB on its own and
 unmaps it when freed, so buffers freed by the first call do not stay resident and hide the timed
-calls' peak. ``ratio`` is that peak over the ensemble's ``N d 4`` bytes.
+calls' peak. On a GPU the memory is the device's peak bytes in use (``memory_stats``, the same
+shapes in the first and the timed calls) minus its bytes in use before the timed calls; the rows
+then go to ``scaling_gpu.json`` and the page's ``scaling_gpu`` block. ``ratio`` is that peak over
+the ensemble's ``N d 4`` bytes.
 """
 
 from __future__ import annotations
@@ -63,7 +66,9 @@ def measure(dim: int, filter_name: str, members: int, steps: int, repeats: int, 
     t0 = time.perf_counter()
     call()
     first = time.perf_counter() - t0
-    before = _status("VmRSS")
+    device = jax.devices()[0]
+    gpu = device.platform != "cpu"
+    before = (device.memory_stats()["bytes_in_use"] / 2 ** 20 if gpu else _status("VmRSS"))
     with open("/proc/self/clear_refs", "w") as f:
         f.write("5")
     seconds = []
@@ -71,7 +76,7 @@ def measure(dim: int, filter_name: str, members: int, steps: int, repeats: int, 
         t0 = time.perf_counter()
         result = call()
         seconds.append(time.perf_counter() - t0)
-    extra = _status("VmHWM") - before
+    extra = (device.memory_stats()["peak_bytes_in_use"] / 2 ** 20 if gpu else _status("VmHWM")) - before
     err = np.sqrt(np.mean((np.asarray(result.mean) - np.asarray(truth)[1:]) ** 2, -1))
     ensemble_mib = members * dim * 4 / 2 ** 20
     return {"dim": dim, "filter": filter_name, "N": members, "steps": steps,
@@ -107,8 +112,7 @@ def main(argv=None) -> None:
     record = harness.results_record("lorenz96_scaling", harness.command("lorenz96_scaling", argv),
                                     rows, radius=args.radius, inflation=args.inflation)
     m = record["machine"]
-    lines = ([f"Made by `{record['command']}` on {record['date']}, {m['cpu']} ({m['cpu_count']} "
-              f"cores, jax {m['jax_backend']}), N = {args.members}, radius {args.radius:g}, "
+    lines = ([f"Made by `{record['command']}` on {record['date']}, {harness.where(m)}, N = {args.members}, radius {args.radius:g}, "
               f"inflation {args.inflation:g}. Seconds per filter step (the fastest of "
               f"{args.repeats} calls of {args.filter_steps} steps) and the peak memory the filter "
               f"allocates, in MiB and over the ensemble's size:", ""]
@@ -117,7 +121,9 @@ def main(argv=None) -> None:
                              [[r["dim"], r["filter"], f"{r['seconds_per_step']:.3g}",
                                f"{r['first_call_s']:.1f}", f"{r['peak_mib']:.0f}",
                                f"{r['ratio']:.1f}"] for r in rows]))
-    harness.publish(args, record, lines, "scaling.json", "scaling")
+    gpu = m["jax_backend"] != "cpu"
+    harness.publish(args, record, lines, "scaling_gpu.json" if gpu else "scaling.json",
+                    "scaling_gpu" if gpu else "scaling")
 
 
 if __name__ == "__main__":
