@@ -504,15 +504,6 @@ def machine() -> dict:
             "devices": sorted({d.device_kind for d in jax.devices()})}
 
 
-def where(machine_record: dict) -> str:
-    """A results line's machine: the CPU and its cores, and the accelerator JAX ran on, if any."""
-    m = machine_record
-    cpu = f"{m['cpu']} ({m['cpu_count']} cores)"
-    if m["jax_backend"] == "cpu":
-        return cpu
-    return f"{', '.join(m['devices'])} (jax {m['jax_backend']}) with {cpu}"
-
-
 def versions() -> dict:
     import flax
     import optax

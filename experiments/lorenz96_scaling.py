@@ -27,6 +27,7 @@ import sys
 import time
 
 from experiments import harness
+from experiments.bench import where
 
 
 def _status(field: str) -> float:
@@ -112,7 +113,7 @@ def main(argv=None) -> None:
     record = harness.results_record("lorenz96_scaling", harness.command("lorenz96_scaling", argv),
                                     rows, radius=args.radius, inflation=args.inflation)
     m = record["machine"]
-    lines = ([f"Made by `{record['command']}` on {record['date']}, {harness.where(m)}, N = {args.members}, radius {args.radius:g}, "
+    lines = ([f"Made by `{record['command']}` on {record['date']}, {where(m)}, N = {args.members}, radius {args.radius:g}, "
               f"inflation {args.inflation:g}. Seconds per filter step (the fastest of "
               f"{args.repeats} calls of {args.filter_steps} steps) and the peak memory the filter "
               f"allocates, in MiB and over the ensemble's size:", ""]
