@@ -9,8 +9,8 @@ Entry points:
     (``trained``: a ``TrainedPrior``, the checked route; raw params; or None for the exact prior);
     settings ``CSFConfig``: ``SamplerConfig`` (with ``GuidanceConfig``), ``InflationConfig``,
     ``PriorConfig`` (with ``MixtureConfig``, and ``CovarianceConfig``: sample, Ledoit-Wolf shrunk
-    or localised covariance for small ensembles); ``csf_jax.ROBUST`` for a model CSF was not
-    tuned on.
+    or localised covariance for small ensembles). ``CSFConfig()`` is the filter for a model of
+    one's own (the mixture prior); ``csf_jax.PAPER`` the paper's (the learned prior alone).
   ``csf_jax.simulate(problem, key)``: truth and observations of a ``StateSpaceModel``.
   ``csf_jax.problems.get(name)``: the paper's problems, Lorenz-96 and the zoo of unseen models.
   ``csf_jax.load_pretrained(name)``: the shipped trained prior of a problem.
@@ -61,7 +61,7 @@ from csf_jax.filters import (
                              ring_localization,
                              score_filter,
 )
-from csf_jax.filters.csf import ROBUST, SamplerConfig
+from csf_jax.filters.csf import PAPER, SamplerConfig
 from csf_jax.filters.csf import csf_filter as filter  # noqa: A001  (the user-facing name)
 from csf_jax.filters.driver import Method, run
 from csf_jax.filters.sharded import gather_result, sharded_letkf, site_mesh
@@ -101,10 +101,10 @@ from csf_jax.trained import TrainedPrior, load_prior
 from csf_jax.trained import deprecated_alias as _deprecated_alias
 from csf_jax.training import DatasetConfig, TrainConfig, train_prior
 
-__version__ = "0.6.0"
+__version__ = "0.7.0"
 
 __all__ = ["CSFConfig", "FilterResult", "GuidanceConfig", "Likelihood", "MixtureConfig",
-           "NetworkConfig", "ObservationNoise", "ROBUST", "Step", "poisson_likelihood",
+           "NetworkConfig", "ObservationNoise", "PAPER", "Step", "poisson_likelihood",
            "volatility_likelihood",
            "PriorScore", "ProcessNoise", "TrainedPrior", "DatasetConfig", "TrainConfig",
            "load_prior", "train_prior", "LETKFConfig", "LocalCSFConfig", "Localization", "letkf",
@@ -121,5 +121,14 @@ __all__ = ["CSFConfig", "FilterResult", "GuidanceConfig", "Likelihood", "Mixture
 
 
 def __getattr__(name: str):
-    """``csf_jax.Pretrained``: the deprecated name of ``TrainedPrior`` (a ``DeprecationWarning``)."""
+    """Deprecated names, with a ``DeprecationWarning``: ``csf_jax.Pretrained`` (``TrainedPrior``)
+    and ``csf_jax.ROBUST`` (the mixture prior, which ``CSFConfig()`` has by default)."""
+    if name == "ROBUST":
+        import warnings
+
+        warnings.warn("csf_jax.ROBUST is deprecated: the mixture prior is CSFConfig()'s default "
+                      "(with particle kernels and the effective-sample-size discount), and "
+                      "csf_jax.ROBUST returns CSFConfig(); the name goes in the next version",
+                      DeprecationWarning, stacklevel=2)
+        return CSFConfig()
     return _deprecated_alias(__name__, name)

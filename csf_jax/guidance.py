@@ -56,10 +56,12 @@ class GuidanceConfig:
         likelihood). The Laplace Gaussian sits at the mode; a skewed posterior (the cubic sensor)
         needs its mean: K = 1 keeps the Laplace draw itself, K = 8 (the default) corrects most of
         the bias (measured on docs/design.md, "The sampler").
-      proposal_df: None (default): the K candidates are Laplace draws, Gaussian around the mode. A
-        positive int: Student-t with these degrees of freedom per whitened coordinate, for
-        heavy-tailed likelihoods (Cauchy noise: 1), whose posteriors have tails the Gaussian never
-        proposes: with it the resampled ensemble comes out too narrow (docs/ablation.md).
+      proposal_df: None (default): the K candidates are Laplace draws, Gaussian around the mode,
+        unless the model's observation noise declares heavy tails (``ssm.tail_df``: Cauchy noise,
+        1), whose degrees of freedom CSF then takes. A positive int: Student-t with these degrees
+        of freedom per whitened coordinate, for heavy-tailed likelihoods, whose posteriors have
+        tails the Gaussian never proposes: with it the resampled ensemble comes out too narrow
+        (docs/ablation.md).
     """
 
     mode: str = "kalman"

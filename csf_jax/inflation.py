@@ -109,7 +109,9 @@ class InflationConfig:
         of the ensemble filters' covariance inflation. 0 is the paper's sampler and the exact Bayes
         update between surprises.
       adaptive: add ``s`` of the module docstring per step (``tau^2 = base^2 + s``): ``s > 0`` only
-        when the observation is improbable under the prior ensemble (an unmodelled shock).
+        when the observation is improbable under the prior ensemble (an unmodelled shock). Off
+        by default: the mixture prior's shock components (``csf_jax.mixture``) read a surprise by
+        its evidence instead; ``csf_jax.PAPER``, the learned prior alone, turns it on.
       threshold: the trigger, in standard deviations of the chi-square innovation statistic above
         its mean.
       max: cap on the adaptive part of tau.
@@ -118,7 +120,7 @@ class InflationConfig:
     """
 
     base: float = 0.0
-    adaptive: bool = True
+    adaptive: bool = False
     threshold: float = 2.0
     max: float = 10.0
     statistic: str = "median"

@@ -53,7 +53,7 @@ class PriorConfig:
     """
 
     encode_particles: int | None = 256
-    mixture: MixtureConfig | None = None
+    mixture: MixtureConfig | None = MixtureConfig()
     covariance: CovarianceConfig = CovarianceConfig()
 
     def __post_init__(self):

@@ -52,11 +52,14 @@ TORCH_MISSING = "PyTorch is not installed: pip install -e '.[bench]'"
 
 
 def config(spec: dict):
-    """The benchmarked ``CSFConfig``: ``spec``'s sampler, every other setting at its default."""
-    from csf_jax import CSFConfig, GuidanceConfig, SamplerConfig
+    """The benchmarked ``CSFConfig``: ``csf_jax.PAPER`` (the learned prior's step, which the
+    PyTorch port implements; the default's mixture components are not ported) with ``spec``'s
+    sampler."""
+    from csf_jax import PAPER, CSFConfig, GuidanceConfig, SamplerConfig
 
     return CSFConfig(sampler=SamplerConfig(reverse_steps=spec["steps"],
-                                           guidance=GuidanceConfig(mode=spec["guidance"])))
+                                           guidance=GuidanceConfig(mode=spec["guidance"])),
+                     inflation=PAPER.inflation, prior=PAPER.prior)
 
 
 def network():

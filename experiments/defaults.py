@@ -1,7 +1,7 @@
 """Which default: candidate CSF configs, each change alone, on held-out runs of the paper's
 problems and on the zoo.
 
-    python -m experiments.defaults [--candidates CSF,ROBUST,...] [--groups table,zoo,moderate]
+    python -m experiments.defaults [--candidates CSF,PAPER,...] [--groups table,zoo,moderate]
         [--particles 1000] [--seed 7] [--out results/defaults] [--page docs/defaults.md]
 
 A candidate is a ``CSFConfig`` (``CANDIDATES``), called as a user would on a model of their own:
@@ -30,19 +30,23 @@ from experiments import harness, zoo
 
 
 def _mixture(**settings) -> csf_jax.CSFConfig:
-    """``csf_jax.ROBUST`` with ``MixtureConfig(**settings)``."""
-    return dataclasses.replace(csf_jax.ROBUST, prior=PriorConfig(mixture=MixtureConfig(**settings)))
+    """``CSFConfig()`` with ``MixtureConfig(**settings)``."""
+    return dataclasses.replace(csf_jax.CSFConfig(),
+                               prior=PriorConfig(mixture=MixtureConfig(**settings)))
 
 
 CANDIDATES = {
-    "CSF": csf_jax.CSFConfig(),
-    "ROBUST": csf_jax.ROBUST,
+    # the learned (here Gaussian) prior alone with the innovation-triggered inflation
+    "PAPER": csf_jax.PAPER,
+    # the mixture prior with point particle components and no discount
+    "mixture": _mixture(particle_ess=0.0, particle_kernel=0.0),
     # the particle reading discounted where its evidence weights have fewer than 2.5 d
     # effective particles
-    "ROBUST+ess": _mixture(particle_ess=2.5),
+    "mixture+ess": _mixture(particle_kernel=0.0),
     # the particle components widened to a regularised particle filter's kernels
-    "ROBUST+kernel": _mixture(particle_kernel=1.0),
-    "ROBUST+kernel+ess": _mixture(particle_kernel=1.0, particle_ess=2.5),
+    "mixture+kernel": _mixture(particle_ess=0.0),
+    # both: the default
+    "CSF": csf_jax.CSFConfig(),
 }
 
 # (problem, runs): the table's columns where the candidates differ most, few runs each

@@ -1,11 +1,12 @@
 """The main job: CSF against its baselines on one of the paper's problems (paper Sec. 3).
 
-    python -m experiments.run double_well [--methods CSF,EnKF,...] [--runs 10] [--particles 1000]
-        [--sf-runs R] [--seed 0] [--out DIR] [--quick]
+    python -m experiments.run double_well [--methods CSF,EnKF,...] [--preset default|paper]
+        [--runs 10] [--particles 1000] [--sf-runs R] [--seed 0] [--out DIR] [--quick]
 
 ``ENTRIES`` declares the filters (``experiments.harness``): CSF with the shipped pretrained prior
 (``csf_jax.load_pretrained``; the triple well uses the double-well model, the paper's transfer
-experiment), CSF-G (CSF's sampler with the ensemble's own Gaussian as the prior: what the learned
+experiment) and ``--preset``'s config (``csf_jax.filters.csf.PRESETS``: "default", ``CSFConfig()``,
+or "paper", ``csf_jax.PAPER``; the same on every problem, recorded in the results file), CSF-G (CSF's sampler with the ensemble's own Gaussian as the prior: what the learned
 network has to beat), SF (a score net trained online at every step), the EnKF, the PF and the
 near-exact reference filter (``csf_jax.reference_filter``, shocks modelled, started from the model's
 initial law: the best achievable). Every filter gets the same runs; "RMSE / ref." is each one's RMSE
@@ -19,6 +20,7 @@ matplotlib). The seven-problem table of the README is ``python -m experiments.ta
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import tempfile
 
@@ -26,45 +28,52 @@ import jax
 import numpy as np
 
 import csf_jax
-from csf_jax import CSFConfig, GuidanceConfig, SamplerConfig, SFConfig, problems
+from csf_jax import PAPER, CSFConfig, SFConfig, problems
+from csf_jax.filters.csf import PRESETS
 from experiments import harness
 
 RUNS, PARTICLES = 10, 1000  # the table's setting
 QUICK = dict(runs=2, particles=100, num_steps=10)
-# Cauchy noise has heavy tails, and so has the posterior: Gaussian proposals around the mode never
-# propose its tails. Student-t proposals with one degree of freedom, the noise's own tail, and 32
-# of them per particle (docs/ablation.md).
-TABLE_CONFIGS = {"cauchy": CSFConfig(sampler=SamplerConfig(guidance=GuidanceConfig(
-    proposal_df=1, proposals=32)))}
-# SF's sampler: base inflation 0.2 (its score net is trained online on one ensemble; without it SF
-# loses the mirror well after a shock), CSF's own on the triple well.
-SF_SAMPLER = CSFConfig(inflation=csf_jax.InflationConfig(base=0.2))
-SF_SAMPLERS = {"triple_well": CSFConfig()}
+# SF's sampler, the paper's online stage with a base inflation of 0.2 (its score net is trained
+# online on one ensemble; without it SF loses the mirror well after a shock), the paper's own on
+# the triple well. SF is the paper's baseline: its sampler does not follow CSF's preset.
+SF_SAMPLER = dataclasses.replace(PAPER, inflation=csf_jax.InflationConfig(base=0.2, adaptive=True))
+SF_SAMPLERS = {"triple_well": PAPER}
 
 
-def csf_config(case: harness.Case) -> CSFConfig:
-    """CSF's (and CSF-G's) config on ``case``'s problem in the tables."""
-    return TABLE_CONFIGS.get(case.problem, CSFConfig())
+def csf_config(case: harness.Case, preset: str = "default") -> CSFConfig:
+    """CSF's (and CSF-G's) config in the tables: ``PRESETS[preset]``, the same on every problem
+    (``case`` names the problem for callers that vary it)."""
+    return PRESETS[preset]
 
 
-def _csf(case, model):
-    return {"params": csf_jax.load_pretrained(case.problem), "config": csf_config(case)}
+def _csf(preset: str = "default"):
+    def settings(case, model):
+        return {"params": csf_jax.load_pretrained(case.problem),
+                "config": csf_config(case, preset)}
+
+    return settings
 
 
-def _csf_gaussian(case, model):
-    config = csf_config(case)
-    return {"prior": csf_jax.gaussian_prior(config.sampler.sigma_max, config.prior.covariance),
-            "config": config}
+def _csf_gaussian(preset: str = "default"):
+    def settings(case, model):
+        config = csf_config(case, preset)
+        return {"prior": csf_jax.gaussian_prior(config.sampler.sigma_max,
+                                                config.prior.covariance), "config": config}
+
+    return settings
 
 
 def _sf(case, model):
     return {"config": SFConfig(), "sampler": SF_SAMPLERS.get(case.problem, SF_SAMPLER)}
 
 
-def entries(sf_runs: int | None = None, reference=csf_jax.ReferenceConfig()) -> list:
-    """The main job's filters; SF on the first ``sf_runs`` runs (None: all)."""
-    return [harness.Entry("CSF", "csf", _csf, batch=2),
-            harness.Entry("CSF-G", "csf", _csf_gaussian, batch=2),
+def entries(sf_runs: int | None = None, reference=csf_jax.ReferenceConfig(),
+            preset: str = "default") -> list:
+    """The main job's filters, CSF and CSF-G with ``PRESETS[preset]``; SF on the first
+    ``sf_runs`` runs (None: all)."""
+    return [harness.Entry("CSF", "csf", _csf(preset), batch=2),
+            harness.Entry("CSF-G", "csf", _csf_gaussian(preset), batch=2),
             harness.Entry("SF", "sf", _sf, runs=sf_runs, batch=1),
             harness.Entry("EnKF", "enkf"),
             harness.Entry("PF", "pf"),
@@ -72,6 +81,13 @@ def entries(sf_runs: int | None = None, reference=csf_jax.ReferenceConfig()) -> 
 
 
 LABELS = [e.label for e in entries()]
+
+
+def add_preset(p) -> None:
+    """``--preset``: CSF's named config (``csf_jax.filters.csf.PRESETS``)."""
+    p.add_argument("--preset", choices=sorted(PRESETS), default="default",
+                   help="CSF's config: default (CSFConfig(), the mixture prior) or paper "
+                        "(csf_jax.PAPER, tuned to the paper's table); default %(default)s")
 REFERENCE = "Ref."
 
 
@@ -104,7 +120,7 @@ def print_table(rows_: list) -> None:
     print("\n".join(harness.table(header, body)))
 
 
-def figures(out: str, case: harness.Case, results: dict, chosen) -> None:
+def figures(out: str, case: harness.Case, results: dict, chosen, preset: str = "default") -> None:
     """The main job's figures, or a line saying how to get matplotlib."""
     try:
         from experiments import figures as fig
@@ -120,7 +136,7 @@ def figures(out: str, case: harness.Case, results: dict, chosen) -> None:
         key = harness.run_keys(case.seed, [0])[0]
         paths.append(fig.prior_vs_model(out, case.problem, model,
                                         csf_jax.load_pretrained(case.problem),
-                                        csf_config(case), data.ensembles[0], key[0],
+                                        csf_config(case, preset), data.ensembles[0], key[0],
                                         data.shocks[0]))
     print("figures: " + ", ".join(paths))
 
@@ -133,6 +149,7 @@ def main(argv=None):
                    help="one of: %(choices)s")
     p.add_argument("--methods", type=harness.name_list(LABELS, "filter"), default=LABELS,
                    help=f"comma-separated filters from {','.join(LABELS)} (default: all)")
+    add_preset(p)
     harness.add_sizes(p, runs=RUNS, particles=PARTICLES, seed=0)
     p.add_argument("--sf-runs", type=harness.int_at_least(1), default=None,
                    help="run SF on the first R runs only (default: all on a GPU, 1 on a CPU)")
@@ -152,7 +169,7 @@ def main(argv=None):
                         settings=(("num_steps", quick["num_steps"]),) if quick else ())
     reference = (csf_jax.ReferenceConfig(particles=2000, shock_draws=256) if quick
                  else csf_jax.ReferenceConfig())
-    chosen = [e for e in entries(sf_runs, reference) if e.label in args.methods]
+    chosen = [e for e in entries(sf_runs, reference, args.preset) if e.label in args.methods]
     chosen += harness.extra_entries(args)
     cache = args.cache or os.path.join(args.out or tempfile.mkdtemp(prefix="csf_run_"), "cache")
     results = harness.run([case], chosen, harness.Cache(cache), progress=not args.no_progress)
@@ -160,8 +177,8 @@ def main(argv=None):
     print_table(table)
     if args.out:
         harness.write_results(f"{args.out}/results.json", harness.results_record(
-            "run", harness.command("run", argv), table))
-        figures(args.out, case, results, chosen)
+            "run", harness.command("run", argv), table, preset=args.preset))
+        figures(args.out, case, results, chosen, args.preset)
     if sf_runs is not None and "SF" in args.methods and sf_runs < runs:
         print(f"SF ran on {sf_runs} of {runs} runs (its online training is the slow part on a "
               f"CPU); --sf-runs {runs} for all.")

@@ -6,9 +6,9 @@
 On held-out runs of the paper's problems (seed 7; the tables use seed 0), with N members: CSF with
 the shipped prior; CSF-G (CSF's sampler with the ensemble's Gaussian as the prior) with the sample
 covariance, Ledoit-Wolf shrinkage, or Gaspari-Cohn localisation of half-width r (0.5: the diagonal)
-(``CSFConfig.prior.covariance``: the Kalman guidance uses the same covariance); ``csf_jax.ROBUST``
-with the column's config; the EnKF, the PF and the reference. Each column's CSF config is the
-table's (``experiments.run.csf_config``). Cells are cached (``experiments.harness``).
+(``CSFConfig.prior.covariance``: the Kalman guidance uses the same covariance); ``csf_jax.PAPER``
+with the shipped prior; the EnKF, the PF and the reference. CSF's config is the table's
+(``experiments.run.csf_config``). Cells are cached (``experiments.harness``).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from __future__ import annotations
 import dataclasses
 
 import csf_jax
-from csf_jax import CovarianceConfig, PriorConfig
+from csf_jax import CovarianceConfig
 from experiments import harness
 from experiments import run as main_job
 
@@ -38,16 +38,15 @@ def _gaussian(covariance):
     return settings
 
 
-def _robust(case, model):
-    config = main_job.csf_config(case)
-    return {"config": dataclasses.replace(config, inflation=csf_jax.ROBUST.inflation,
-                                          prior=PriorConfig(mixture=csf_jax.ROBUST.prior.mixture))}
+def _paper(case, model):
+    return {"params": csf_jax.load_pretrained(case.problem), "config": main_job.csf_config(
+        case, "paper")}
 
 
-ENTRIES = ([harness.Entry("CSF", "csf", main_job._csf)]
+ENTRIES = ([harness.Entry("CSF", "csf", main_job._csf())]
            + [harness.Entry(f"CSF-G {name}", "csf", _gaussian(c)) for name, c in
               ESTIMATORS.items()]
-           + [harness.Entry("ROBUST", "csf", _robust), harness.Entry("EnKF", "enkf"),
+           + [harness.Entry("PAPER", "csf", _paper), harness.Entry("EnKF", "enkf"),
               harness.Entry("PF", "pf"),
               harness.Entry("Ref.", "reference", {"own_start": True})])
 

@@ -1,7 +1,7 @@
 """The paper's table: the main job's filters on the seven problems, 10 runs each, N = 1000.
 
-    python -m experiments.table [--problems double_well,...] [--sf-runs 5] [--out DIR]
-        [--page PAGE] [--readme README]
+    python -m experiments.table [--problems double_well,...] [--preset default|paper]
+        [--sf-runs 5] [--out DIR] [--page PAGE] [--readme README]
 
 The cases and filters are ``experiments.run``'s (seed 0). Prints the tables; with ``--out``
 writes ``OUT/results.json`` and each problem's figures under ``OUT/<problem>/``, with ``--page``
@@ -104,21 +104,24 @@ def main(argv=None):
     p.add_argument("--sf-runs", type=harness.int_at_least(1), default=None,
                    help="run SF on the first R runs of each problem (default: all on a GPU, 5 "
                         "on a CPU)")
+    main_job.add_preset(p)
     harness.add_outputs(p, "results/table", "docs/results.md")
     p.add_argument("--readme", default=None,
                    help="a README whose table block is rewritten (the committed one: README.md)")
     args = p.parse_args(argv)
     sf_runs = args.sf_runs or (5 if jax.default_backend() == "cpu" else None)
     cases = [harness.Case(name) for name in args.problems]
-    chosen = main_job.entries(sf_runs) + harness.extra_entries(args)
+    chosen = main_job.entries(sf_runs, preset=args.preset) + harness.extra_entries(args)
     results = harness.run(cases, chosen, harness.Cache(args.cache), not args.no_progress)
     rows = main_job.rows(results, cases, chosen)
-    record = harness.results_record("table", harness.command("table", argv), rows)
+    record = harness.results_record("table", harness.command("table", argv), rows,
+                                    preset=args.preset)
     if args.out:
         harness.write_results(os.path.join(args.out, "results.json"), record)
         for case in cases:
             os.makedirs(os.path.join(args.out, case.problem), exist_ok=True)
-            main_job.figures(os.path.join(args.out, case.problem), case, results, chosen)
+            main_job.figures(os.path.join(args.out, case.problem), case, results, chosen,
+                             args.preset)
     if args.page:
         harness.replace_section(args.page, render(record))
     if args.readme:

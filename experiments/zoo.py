@@ -7,8 +7,8 @@ Prints the table; ``--out`` writes ``results_N<N>.json`` there and ``--page`` re
 generated block for this N (the committed command names both).
 
 Every filter gets the same N particles, trajectories and initial ensembles (``experiments.harness``,
-seed 0); CSF needs no training (``params=None``): "CSF" is ``CSFConfig()``, "CSF-R" is
-``csf_jax.ROBUST``, the same call on every model (with ``csf_jax.gaussian_prior()`` where the
+seed 0); CSF needs no training (``params=None``): "CSF" is ``CSFConfig()``, the same call on
+every model (with ``csf_jax.gaussian_prior()`` where the
 process noise is not i.i.d.: the exact mixture prior needs it). The reference is the Kalman filter
 for the linear model and a bootstrap PF with 10^5 particles for the others with d <= 4; the
 models of moderate dimension (``zoo.MODERATE``, d = 16 to 40) have none. The models and why each
@@ -38,7 +38,6 @@ def _csf(config):
 
 
 ENTRIES = [harness.Entry("CSF", "csf", _csf(csf_jax.CSFConfig())),
-           harness.Entry("CSF-R", "csf", _csf(csf_jax.ROBUST)),
            harness.Entry("PF", "pf"), harness.Entry("EnKF", "enkf")]
 
 
@@ -94,7 +93,7 @@ def page(record: dict) -> list:
                     + [f"{r[k]['compile_seconds']:.1f}" for k in filters])
     return ([f"Made by `{record['command']}` on {record['date']}, {m['cpu']} ({m['cpu_count']} "
              f"cores, jax {m['jax_backend']}). RMSE (`csf_jax.rmse`, over the runs and steps) of "
-             f"CSF (`CSFConfig()`), CSF-R (`csf_jax.ROBUST`), the PF, the EnKF and the "
+             f"CSF (`CSFConfig()`), the PF, the EnKF and the "
              f"reference; CSF over the better of PF and EnKF (\"/ best\") and over the reference "
              f"(\"/ ref.\"):", ""]
             + harness.table(["model", "N", *filters, "reference"]
@@ -108,7 +107,7 @@ def page(record: dict) -> list:
 
 
 def main(argv=None):
-    p = harness.parser("zoo", "Benchmark CSF (defaults and ROBUST) against the PF, the EnKF and "
+    p = harness.parser("zoo", "Benchmark CSF (its defaults) against the PF, the EnKF and "
                        "a near-exact reference on the zoo's models (cached, resumable); write "
                        "results.json and the markdown page.")
     harness.add_names(p, "--models", MODELS, what="model")

@@ -44,7 +44,8 @@ CASES = [
     ("table", ["--sf-runs", "0"], "--sf-runs", ">= 1"),
     ("zoo", ["--models", "bogus"], "--models", "pendulum"),
     ("zoo", ["--particles", "1"], "--particles", ">= 2"),
-    ("defaults", ["--candidates", "CSF,bogus"], "--candidates", "ROBUST"),
+    ("defaults", ["--candidates", "CSF,bogus"], "--candidates", "PAPER"),
+    ("run", ["double_well", "--preset", "robust"], "--preset", "paper"),
     ("defaults", ["--groups", "all"], "--groups", "moderate"),
     ("small_ensembles", ["--problems", "bogus"], "--problems", "cauchy"),
     ("small_ensembles", ["--runs", "0"], "--runs", ">= 1"),
@@ -86,6 +87,21 @@ def test_quick_main_job_writes_its_table_results_and_figures(tmp_path, capsys):
     assert {p.name for p in out.glob("*.png")} == {"estimates.png", "rmse_over_time.png",
                                                    "prior.png"}
     json.dumps(record)
+    assert record["preset"] == "default"
+    prior = rows["CSF"]["config"]["CSFSpec"]["config"]["CSFConfig"]["prior"]["PriorConfig"]
+    assert prior["mixture"] is not None
+
+
+def test_the_paper_preset_runs_the_paper_config_and_is_recorded(tmp_path, capsys):
+    out = tmp_path / "out"
+    _main("run")(["double_well", "--quick", "--preset", "paper", "--methods", "CSF,EnKF",
+                  "--out", str(out), "--cache", str(tmp_path / "c"), "--no-progress"])
+    record = harness.read_results(out / "results.json")
+    assert record["preset"] == "paper"
+    row = {r["entry"]: r for r in record["rows"]}["CSF"]
+    config = row["config"]["CSFSpec"]["config"]["CSFConfig"]
+    assert config["prior"]["PriorConfig"]["mixture"] is None
+    assert config["inflation"]["InflationConfig"]["adaptive"] is True
 
 
 def test_table_renders_its_blocks_from_a_results_record(tmp_path):

@@ -44,7 +44,9 @@ def test_exact_prior_csf_tracks_kalman(kalman_case, mode, x64):
     1.25 rms / 2.9 max away, so the bounds fail a filter that ignores the data.
     """
     case = kalman_case
-    cfg = CSFConfig(sampler=SamplerConfig(reverse_steps=100, guidance=GuidanceConfig(mode=mode)), inflation=InflationConfig(base=0.0, adaptive=False))
+    cfg = CSFConfig(sampler=SamplerConfig(reverse_steps=100, guidance=GuidanceConfig(mode=mode)),
+                    inflation=InflationConfig(base=0.0, adaptive=False),
+                    prior=PriorConfig(mixture=None))
     r = csf_jax.filter(None, case.obs, case.ensemble, model=case.model, key=jax.random.key(5),
                        config=cfg, prior=csf_jax.exact_mixture_prior())
     err = case.errors(r.mean, r.std)
@@ -177,7 +179,8 @@ def test_divergence_is_reported_not_silent():
     """The paper's raw DPS overflows on the cubic sensor; the filter says so instead of returning
     NaNs (and returns them when asked with check_finite=False)."""
     model, _, obs, ens = _small_run("cubic10_indep", num_steps=3, n=64)
-    cfg = CSFConfig(sampler=SamplerConfig(reverse_steps=200, guidance=GuidanceConfig(mode="raw")))
+    cfg = dataclasses.replace(csf_jax.PAPER, sampler=SamplerConfig(
+        reverse_steps=200, guidance=GuidanceConfig(mode="raw")))
     with pytest.raises(FloatingPointError, match="non-finite at step 1") as err:
         csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(0), config=cfg)
     # the advice names no setting: the clipped guidance it used to name is the less accurate one
@@ -195,11 +198,11 @@ def test_ignored_combinations_are_refused():
     clipped = SamplerConfig(guidance=GuidanceConfig(mode="clipped"))
     with pytest.raises(ValueError, match=r"CSFConfig.prior.mixture needs "
                                          r"CSFConfig.sampler.guidance.mode='kalman'.*'clipped'"):
-        dataclasses.replace(csf_jax.ROBUST, sampler=clipped)
+        CSFConfig(sampler=clipped)
     with pytest.raises(ValueError, match="CSFConfig.prior.mixture needs"):
         CSFConfig(sampler=clipped, prior=PriorConfig(mixture=csf_jax.MixtureConfig()))
     model, _, obs, ens = _small_run("cubic10_indep", num_steps=2)
-    shrunk = PriorConfig(covariance=csf_jax.CovarianceConfig("ledoit_wolf"))
+    shrunk = PriorConfig(mixture=None, covariance=csf_jax.CovarianceConfig("ledoit_wolf"))
     for mode in ("clipped", "raw", "normalized", "none"):
         cfg = CSFConfig(sampler=SamplerConfig(reverse_steps=5, guidance=GuidanceConfig(mode=mode)),
                         prior=shrunk)

@@ -110,11 +110,12 @@ def test_particle_ess_hands_a_collapsed_particle_reading_to_the_ensemble():
     model = csf_jax.problems.get("double_well")
     key, centers, prior_ens, cov = _spread_particles(0.05)
     y = jnp.array([1.0])
-    plain = mixture.select(model, MixtureConfig(shock_hazard=0.0), key, y, centers, prior_ens,
+    points = dict(shock_hazard=0.0, particle_kernel=0.0)
+    plain = mixture.select(model, MixtureConfig(**points, particle_ess=0.0), key, y, centers, prior_ens,
                            cov, 0.0, 2.0, 1.0)
-    ess = mixture.select(model, MixtureConfig(shock_hazard=0.0, particle_ess=50.0), key, y,
+    ess = mixture.select(model, MixtureConfig(**points, particle_ess=50.0), key, y,
                          centers, prior_ens, cov, 0.0, 2.0, 1.0)
-    low = mixture.select(model, MixtureConfig(shock_hazard=0.0, particle_ess=2.0), key, y,
+    low = mixture.select(model, MixtureConfig(**points, particle_ess=2.0), key, y,
                          centers, prior_ens, cov, 0.0, 2.0, 1.0)
     assert float(plain.particle_weight) > 0.85
     assert float(low.log_bf) == float(plain.log_bf)
@@ -219,11 +220,11 @@ def test_memory_accumulates_with_forgetting():
 
 @pytest.mark.slow
 def test_mixture_csf_tracks_kalman(x64):
-    """``csf_jax.ROBUST`` (the mixture prior) on a linear-Gaussian model, N = 300: within a
+    """``CSFConfig()`` (the mixture prior) on a linear-Gaussian model, N = 300: within a
     fraction of the Kalman std of the Kalman mean."""
     case = make_linear_case(2, 300, with_prior=True)
     r = csf_jax.filter(None, case.obs, case.ensemble, model=case.model, key=jax.random.key(5),
-                       config=csf_jax.ROBUST)
+                       config=CSFConfig())
     print(case.errors(r.mean, r.std))
     err = case.errors(r.mean, r.std)
     assert err.mean_rms < 0.25 and err.mean_max < 0.7, err
@@ -243,8 +244,13 @@ def test_bad_mixture_config_is_refused():
             MixtureConfig(**bad)
     with pytest.raises(TypeError, match="mixture"):
         CSFConfig(prior=PriorConfig(mixture={"memory": 0.5}))
-    assert CSFConfig().prior.mixture is None and csf_jax.ROBUST.prior.mixture == MixtureConfig()
-    assert not csf_jax.ROBUST.inflation.adaptive
+    assert CSFConfig().prior.mixture == MixtureConfig() and not CSFConfig().inflation.adaptive
+    assert csf_jax.PAPER.prior.mixture is None and csf_jax.PAPER.inflation.adaptive
+
+
+def test_robust_is_a_deprecated_name_of_the_default():
+    with pytest.warns(DeprecationWarning, match="csf_jax.ROBUST is deprecated"):
+        assert csf_jax.ROBUST == CSFConfig()
 
 
 # --- steps without observations (an outage), divergence, refused combinations ----------------
@@ -265,8 +271,8 @@ def _squared_lorenz96(num_steps: int):
 
 
 def _outage_runs(num_steps: int, outage: slice, n: int, seeds):
-    """ROBUST and the EnKF on one run of ``_squared_lorenz96`` per seed, every observation of
-    ``outage`` missing: RMSE against the truth per run ``(R,)`` of each, ROBUST's ``finite``
+    """CSF (its defaults) and the EnKF on one run of ``_squared_lorenz96`` per seed, every observation of
+    ``outage`` missing: RMSE against the truth per run ``(R,)`` of each, CSF's ``finite``
     ``(R, K)`` and ``shock_weight`` ``(R, K)``, and the truth's spread (its std over all runs,
     steps and sites). Concrete calls: a divergence would raise."""
     model = _squared_lorenz96(num_steps)
@@ -276,7 +282,7 @@ def _outage_runs(num_steps: int, outage: slice, n: int, seeds):
         truth, obs = csf_jax.simulate(model, k_sim)
         obs = obs.at[outage].set(jnp.nan)
         ens = model.initial_ensemble(k_ens, n)
-        robust = csf_jax.filter(None, obs, ens, model=model, key=k_filter, config=csf_jax.ROBUST)
+        robust = csf_jax.filter(None, obs, ens, model=model, key=k_filter, config=CSFConfig())
         enkf = csf_jax.ensemble_kalman_filter(obs, ens, model=model, key=k_filter)
         for name, r in (("robust", robust), ("enkf", enkf)):
             out[name].append(float(np.sqrt(np.mean((np.asarray(r.mean) - np.asarray(truth[1:]))
@@ -337,7 +343,7 @@ def test_robust_filters_through_a_long_outage():
 
 
 def _check_outage(steps: int, blind: slice, particles: int) -> None:
-    """ROBUST over 4 runs with the ``blind`` steps unobserved: finite, no shock weight while
+    """CSF over 4 runs with the ``blind`` steps unobserved: finite, no shock weight while
     blind, each RMSE below twice the truth's spread, the median within 1.5x of the EnKF's."""
     rmse, enkf, finite, shock, spread = _outage_runs(steps, blind, particles, range(4))
     assert finite.all()
@@ -355,20 +361,26 @@ def _overflowing_model():
         lambda k, n: 0.1 * jax.random.normal(k, (n, 1)))
 
 
-def test_a_forecast_that_overflows_is_reported_even_when_resampled_away():
-    """One member's forecast is inf: the mixture gives its components no weight and the posterior
-    is finite, but the run has diverged: step 1 on is reported (NaN, ``finite`` False) and a
-    concrete call raises, with advice that names no setting to switch to."""
+@pytest.mark.parametrize("points", [True, False])
+def test_a_forecast_that_overflows_is_reported_even_when_resampled_away(points):
+    """One member's forecast is inf. With point particle components and no discount (``points``)
+    the mixture gives its components no weight and the posterior is finite; with the default's
+    kernels and discount the inf reaches every component through the kernels' common centre and
+    covariance and the evidence weights' effective sample size. Either way the run has diverged:
+    step 1 on is reported (``finite`` False) and a concrete call raises, with advice that names
+    no setting to switch to."""
     model = _overflowing_model()
     ens = 0.1 * jax.random.normal(jax.random.key(0), (64, 1))
     ens = ens.at[0].set(10.0)
     obs = jnp.zeros((3, 1))
-    r = csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(1), config=csf_jax.ROBUST,
+    mix = MixtureConfig(particle_kernel=0.0, particle_ess=0.0) if points else MixtureConfig()
+    config = CSFConfig(prior=PriorConfig(mixture=mix))
+    r = csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(1), config=config,
                        check_finite=False, return_ensembles=True)
-    assert bool(jnp.isfinite(r.ensembles).all())
+    assert bool(jnp.isfinite(r.ensembles).all()) == points
     assert not bool(r.finite.any())
     with pytest.raises(FloatingPointError, match="non-finite at step 1 of 3") as err:
-        csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(1), config=csf_jax.ROBUST)
+        csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(1), config=config)
     assert "clipped" not in str(err.value) and "GuidanceConfig" not in str(err.value)
 
 
@@ -383,4 +395,4 @@ def test_mixture_particles_without_a_process_noise_covariance_are_refused():
     with pytest.raises(ValueError, match=r"CSFConfig.prior.mixture.particles needs the process "
                                          r"noise covariance Q.*'sampler_only'.*"
                                          r"MixtureConfig\(particles=False\)"):
-        csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(2), config=csf_jax.ROBUST)
+        csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(2), config=CSFConfig())

@@ -70,7 +70,7 @@ def test_simulate_threads_inputs_and_the_time_index():
         assert float(truth[k, 0]) == pytest.approx(x, rel=1e-4, abs=1e-4)
 
 
-@pytest.mark.parametrize("method", ["csf", pytest.param("csf_robust", marks=pytest.mark.slow),
+@pytest.mark.parametrize("method", ["csf", pytest.param("csf_paper", marks=pytest.mark.slow),
                                     "pf", "enkf"])
 def test_filters_with_inputs_match_the_kalman_filter(method):
     """On a linear-Gaussian model driven by inputs, every ensemble filter's mean is within a few
@@ -82,7 +82,7 @@ def test_filters_with_inputs_match_the_kalman_filter(method):
     ens = model.initial_ensemble(jax.random.key(4), 400)
     kw = dict(model=model, key=jax.random.key(5), inputs=u)
     run = {"csf": lambda: csf_jax.filter(None, obs, ens, **kw),
-           "csf_robust": lambda: csf_jax.filter(None, obs, ens, config=csf_jax.ROBUST, **kw),
+           "csf_paper": lambda: csf_jax.filter(None, obs, ens, config=csf_jax.PAPER, **kw),
            "pf": lambda: csf_jax.particle_filter(obs, ens, **kw),
            "enkf": lambda: csf_jax.ensemble_kalman_filter(obs, ens, **kw)}[method]
     mean = np.asarray(run().mean[:, 0])
@@ -142,7 +142,7 @@ def _poisson_1d():
 
 @pytest.mark.slow
 def test_poisson_likelihood_filters_match_a_grid_filter():
-    """Counts ``y ~ Poisson(exp(1 + x))``: CSF (defaults and ``ROBUST``, no network) and the PF
+    """Counts ``y ~ Poisson(exp(1 + x))``: CSF (defaults and ``PAPER``, no network) and the PF
     against a quadrature filter, including steps with a missing count; the EnKF, on its Gaussian
     stand-in, is further off."""
     model = _poisson_1d()
@@ -154,14 +154,14 @@ def test_poisson_likelihood_filters_match_a_grid_filter():
     kw = dict(model=model, key=jax.random.key(4))
     err = {}
     for name, fn in (("csf", lambda: csf_jax.filter(None, obs, ens, **kw)),
-                     ("csf_robust", lambda: csf_jax.filter(None, obs, ens, config=csf_jax.ROBUST,
-                                                           **kw)),
+                     ("csf_paper", lambda: csf_jax.filter(None, obs, ens, config=csf_jax.PAPER,
+                                                          **kw)),
                      ("pf", lambda: csf_jax.particle_filter(obs, ens, **kw)),
                      ("enkf", lambda: csf_jax.ensemble_kalman_filter(obs, ens, **kw))):
         err[name] = float(np.sqrt(np.mean((np.asarray(fn().mean[:, 0]) - exact) ** 2)))
     print(err)
-    assert err["csf"] < 0.05 and err["csf_robust"] < 0.05 and err["pf"] < 0.05, err
-    assert err["enkf"] > max(err["csf"], err["csf_robust"]), err
+    assert err["csf"] < 0.05 and err["csf_paper"] < 0.05 and err["pf"] < 0.05, err
+    assert err["enkf"] > max(err["csf"], err["csf_paper"]), err
 
 
 def test_a_likelihood_without_a_gaussian_standin_is_refused_by_kalman_type_filters():
@@ -175,9 +175,8 @@ def test_a_likelihood_without_a_gaussian_standin_is_refused_by_kalman_type_filte
         csf_jax.letkf(obs, ens, model=model, key=jax.random.key(0),
                       localization=csf_jax.ring_localization(1, [0]))
     with pytest.raises(ValueError, match="Gaussian stand-in"):  # the adaptive inflation's
-        csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(0))
-    result = csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(0),
-                            config=csf_jax.ROBUST)
+        csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(0), config=csf_jax.PAPER)
+    result = csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(0))
     assert bool(jnp.isfinite(result.mean).all())
 
 
@@ -204,7 +203,8 @@ def test_driver_reports_progress_once_per_step():
 def test_info_holds_what_the_result_docstring_lists():
     """``FilterResult.info`` per filter, as its docstring lists it: the particle filter's ESS in
     ``ess`` (info None); the Kalman filter's covariances only from ``kalman_filter_cov``; the EnKF
-    and the default CSF report none. (CSF's mixture weights: the slow test below.)"""
+    and CSF without the mixture (``csf_jax.PAPER``) report none. (The default CSF's mixture
+    weights: the slow test below.)"""
     from csf_jax.filters.kalman import kalman_filter_cov
     from csf_jax.problems.linear import to_model
     lg = linear_gaussian(2, 1, num_steps=3)
@@ -218,18 +218,18 @@ def test_info_holds_what_the_result_docstring_lists():
                    csf_jax.run(csf_jax.methods.kalman(), obs, None, model=lg, key=key),
                    csf_jax.ensemble_kalman_filter(obs, ens, model=model, key=key),
                    csf_jax.filter(None, obs, ens, model=model, key=key, config=csf_jax.CSFConfig(
-                       sampler=csf_jax.SamplerConfig(reverse_steps=2)))):
+                       sampler=csf_jax.SamplerConfig(reverse_steps=2),
+                       inflation=csf_jax.PAPER.inflation, prior=csf_jax.PAPER.prior))):
         assert result.info is None and result.ess is None
     assert kalman_filter_cov(obs, lg)[1].shape == (3, 2, 2)
 
 
 @pytest.mark.slow
-def test_robust_csf_reports_its_mixture_weights_and_is_reproducible():
+def test_csf_reports_its_mixture_weights_and_is_reproducible():
     model = problems.get("pendulum", num_steps=8)
     _, obs = csf_jax.simulate(model, jax.random.key(0))
     ens = model.initial_ensemble(jax.random.key(1), 64)
-    run = lambda: csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(2),
-                                 config=csf_jax.ROBUST)
+    run = lambda: csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(2))
     result = run()
     assert set(result.info) == {"particle_weight", "shock_weight"}
     for v in result.info.values():
@@ -258,7 +258,7 @@ def test_zoo_models_filter(name):
     model, obs = _zoo_case(name)
     ens = model.initial_ensemble(jax.random.key(1), 32)
     prior = None if model.process_noise is None else csf_jax.gaussian_prior()
-    for config in (csf_jax.CSFConfig(), csf_jax.ROBUST):
+    for config in (csf_jax.CSFConfig(), csf_jax.PAPER):
         result = csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(2),
                                 config=config, prior=prior)
         assert result.mean.shape == (5, model.dim) and bool(jnp.isfinite(result.mean).all())

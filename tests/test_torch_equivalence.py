@@ -21,8 +21,8 @@ from torch.utils._pytree import tree_flatten  # noqa: E402
 
 import csf_jax  # noqa: E402
 from csf_jax import (  # noqa: E402
+    PAPER,
     CSFConfig,
-    InflationConfig,
     NetworkConfig,
     SamplerConfig,
     networks,
@@ -63,11 +63,12 @@ CLIPPED = GuidanceConfig(mode="clipped")  # the Euler-Maruyama sampler with clip
 
 def _config(steps: int | None = None, guidance: GuidanceConfig = GuidanceConfig(),
             **inflation) -> CSFConfig:
-    """``CSFConfig`` with ``steps`` reverse steps (None: the default), the sampler of ``guidance``
-    and the ``InflationConfig`` fields in ``inflation``; everything else at its default."""
+    """``csf_jax.PAPER`` (the step the port implements) with ``steps`` reverse steps (None: the
+    default), the sampler of ``guidance`` and the ``InflationConfig`` fields in ``inflation``."""
     steps = SamplerConfig().reverse_steps if steps is None else steps
     return CSFConfig(sampler=SamplerConfig(reverse_steps=steps, guidance=guidance),
-                     inflation=InflationConfig(**inflation))
+                     inflation=dataclasses.replace(PAPER.inflation, **inflation),
+                     prior=PAPER.prior)
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -374,6 +375,7 @@ def _ancestral_errors(name, config_name, csf: CSFConfig, num_steps, dtype, n=48,
     want = csf_jax.filter(params, obs, ens, model=model, key=key, config=csf, network=config,
                           return_ensembles=True).ensembles
     x = _t(ens)
+    csf = tc.model_config(csf, name)
     sched, step = tc.schedule(csf, x.dtype), tc.make_reverse_step(tnets, tp, csf)
     errors = []
     for k, noise in enumerate(_jax_filter_noise(key, num_steps, ens.shape, csf, dtype)):
@@ -388,7 +390,7 @@ def test_ancestral_schedule_matches():
     """Noise levels, score times (base prior inflation) and bridge coefficients of the default grid:
     the float32 values csf_jax's ancestral sampler uses, to a few float32 ulps (the two sides
     order the same float32 operations differently)."""
-    csf = CSFConfig()
+    csf = PAPER
     levels = jnp.asarray(noise_levels(csf.sampler.reverse_steps, marginal_std_host(1.0),
                                       marginal_std_host(csf.sampler.t_min)), jnp.float32)
     sigma, nxt = levels[:-1], levels[1:]
@@ -441,13 +443,13 @@ def test_ancestral_filter_matches_with_injected_noise(name, config_name, csf, nu
 
 
 @pytest.mark.parametrize("name, config_name, csf, num_steps, tol", [
-    ("double_well", "small", CSFConfig(), 2, 1e-10),
-    ("double_well", "gaussian", CSFConfig(), 2, 1e-10),
-    ("cauchy", "gaussian", CSFConfig(), 2, 1e-9),
+    ("double_well", "small", PAPER, 2, 1e-10),
+    ("double_well", "gaussian", PAPER, 2, 1e-10),
+    ("cauchy", "gaussian", PAPER, 2, 1e-9),
     ("cauchy", "gaussian", _config(guidance=GuidanceConfig(proposal_df=1, proposals=32)), 2,
      1e-9),
     ("cubic10_corr", "default", _config(10), 3, 1e-9),
-    ("cubic10_corr", "default", CSFConfig(), 1, 1e-10),
+    ("cubic10_corr", "default", PAPER, 1, 1e-10),
     ("cubic10_corr", "default", _config(50, GuidanceConfig(iterations=2), adaptive=False, base=0.5),
      1, 1e-4),
 ])
@@ -503,8 +505,8 @@ def test_adaptive_filter_matches_in_float64(x64, name, statistic, obs_shift):
 def test_encoder_subset_matches_in_float64(x64):
     """N = 300 > the default ``encode_particles=256``: both sides encode the first 256 particles
     of the prior ensemble (an encoder of all 300 on one side moves the code, and every particle)."""
-    assert CSFConfig().prior.encode_particles == 256
-    errors = _ancestral_errors("double_well", "small", CSFConfig(), 2, np.float64, n=300)
+    assert PAPER.prior.encode_particles == 256
+    errors = _ancestral_errors("double_well", "small", PAPER, 2, np.float64, n=300)
     assert np.all(errors <= 1e-10), errors
 
 

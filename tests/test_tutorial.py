@@ -26,8 +26,8 @@ def test_the_tutorial_runs_and_csf_is_within_1_1x_of_the_best(tmp_path, monkeypa
 
 
 def test_the_page_has_its_code():
-    assert "CSF, adaptive" in tutorial.code(extras=True)
-    assert "CSF, adaptive" not in tutorial.code()
+    assert "CSF, paper" in tutorial.code(extras=True)
+    assert "CSF, paper" not in tutorial.code()
     code = tutorial.code()
     for name in ("train_prior", "load_prior", ".save(", "drop_observations", "particle_filter",
                  "ensemble_kalman_filter", "savefig", "csf_jax.rmse("):
@@ -39,7 +39,7 @@ def test_the_committed_output_is_current_and_path_free():
     output = pathlib.Path(tutorial.PAGE).parent / "tutorial" / "output.txt"
     text = output.read_text()
     names = [line.split(" RMSE")[0].strip() for line in text.splitlines() if " RMSE " in line]
-    assert names == ["CSF", "PF", "EnKF", "CSF, adaptive"], names
+    assert names == ["CSF", "PF", "EnKF", "CSF, paper"], names
     assert "refused:" in text and "observation map differs" in text
     paths = re.findall(r"(?<![\w.])/(?:[\w.-]+/)+[\w.-]*", text)
     assert not paths, f"{output} names folders of the machine that made it: {paths}"

@@ -48,7 +48,6 @@ from csf_jax.guidance import (
     resample_posterior,
 )
 from csf_jax.inflation import InflationConfig, adaptive_inflation
-from csf_jax.mixture import MixtureConfig
 from csf_jax.networks import NetworkConfig
 from csf_jax.prior import (
     PriorConfig,
@@ -176,7 +175,9 @@ class CSFConfig:
         if self.prior.mixture is not None and mode != "kalman":
             raise ValueError(f"CSFConfig.prior.mixture needs CSFConfig.sampler.guidance.mode="
                              f"'kalman' (its members come from the ancestral sampler), got "
-                             f"{mode!r}; use prior=PriorConfig(mixture=None) for a DPS mode")
+                             f"{mode!r}; use prior=PriorConfig(mixture=None) for a DPS mode "
+                             f"(as csf_jax.PAPER does: dataclasses.replace(csf_jax.PAPER, "
+                             f"sampler=...))")
 
     def __getattr__(self, name):
         if name in FLAT_FIELDS:
@@ -192,10 +193,14 @@ def _warn_flat(name: str) -> None:
                   f"version)", DeprecationWarning, stacklevel=3)
 
 
-ROBUST = CSFConfig(inflation=InflationConfig(adaptive=False),
-                   prior=PriorConfig(mixture=MixtureConfig()))
-"""CSF for a model it was not tuned on: the mixture prior (``csf_jax.mixture``) with its evidence
--weighed shock components in place of the innovation-triggered inflation (docs/zoo.md)."""
+PAPER = CSFConfig(inflation=InflationConfig(adaptive=True), prior=PriorConfig(mixture=None))
+"""The paper's filter: the learned (or Gaussian) prior alone, with the innovation-triggered
+inflation, as tuned to the paper's table (docs/results.md: ``python -m experiments.table --preset
+paper``). ``CSFConfig()`` adds the mixture prior's particle and shock components, which keep it
+within reach of the better of PF and EnKF on models it was not tuned for (docs/defaults.md)."""
+
+PRESETS = {"default": CSFConfig(), "paper": PAPER}
+"""The named configs of the experiments' ``--preset`` (recorded in each results file)."""
 
 
 def uses_kalman(config: CSFConfig) -> bool:
@@ -399,15 +404,16 @@ def _step(model: StateSpaceModel, static: CSFStatic, params, state, y, key, time
     context = prior.condition(params, centers, prior_ens, model.process_std)
     guide = jnp.where((time.k > 1) | config.sampler.assimilate_first, 1.0, 0.0).astype(ens.dtype)
     x_init, start = sampler_start(config, prior_ens, k_init, y, model, guide)
-    if config.prior.mixture is None or not uses_kalman(config):
-        post = sample(params, context, y, x_init, start, k_rev, guide)
-        return (post, memory), _output(post, jnp.all(jnp.isfinite(prior_ens)))
-    if config.sampler.guidance.proposal_df is None and tail_df(model) is not None:
+    if (uses_kalman(config) and config.sampler.guidance.proposal_df is None
+            and tail_df(model) is not None):
         # the proposals take the heavy tails of the model's noise (Cauchy: Student-t, 1 dof)
         guidance = dataclasses.replace(config.sampler.guidance, proposal_df=tail_df(model))
         config = dataclasses.replace(config, sampler=dataclasses.replace(config.sampler,
                                                                          guidance=guidance))
         sample = particle_sampler(model, prior, config, static.shards)
+    if config.prior.mixture is None or not uses_kalman(config):
+        post = sample(params, context, y, x_init, start, k_rev, guide)
+        return (post, memory), _output(post, jnp.all(jnp.isfinite(prior_ens)))
     moments = ensemble_moments(prior_ens, covariance=config.prior.covariance)
     odds = config.prior.mixture.particle_logodds + memory
     sel = mixture.select(model, config.prior.mixture, jax.random.fold_in(key, 3), y, centers, prior_ens,
@@ -458,8 +464,8 @@ def csf_filter(params, obs, ensemble, *, model: StateSpaceModel, key,
       network: the network config of raw ``params``, required with them (a Gaussian-base and a
         whole-score network have the same shapes); a ``TrainedPrior`` brings its own, and a
         different one here is refused.
-      config: online-stage settings (``CSFConfig``; ``csf_jax.ROBUST`` for a model CSF was not
-        tuned on, docs/zoo.md).
+      config: online-stage settings (``CSFConfig``: its defaults are the filter for a model CSF
+        was not tuned on, docs/defaults.md; ``csf_jax.PAPER`` the paper's).
       inputs: a time-varying model's per-step inputs (a pytree, leading axis K), or None.
       return_ensembles: also return the (K, N, d) posterior ensembles.
       check_finite: when called outside jit/vmap, raise FloatingPointError if the filter diverged.

@@ -30,10 +30,10 @@ class FilterResult(NamedTuple):
       info: dict of per-step diagnostics, each stacked over the K steps from the filter step's
         ``StepOutput.info``, or None where the filter reports none. Exactly:
 
-        * CSF with the mixture prior (``PriorConfig.mixture``, e.g. ``csf_jax.ROBUST``):
+        * CSF with the mixture prior (``PriorConfig.mixture``, the default):
           ``particle_weight`` and ``shock_weight``, each ``(K,)``, the posterior weights of the
           mixture's particle and shock components (the ensemble component has the rest). CSF
-          without the mixture (the default): None; it has no bandwidth or other per-step
+          without the mixture (``csf_jax.PAPER``): None; it has no bandwidth or other per-step
           setting to report.
         * The Kalman filter's step reports ``cov`` ``(K, d, d)``, the filtered covariances;
           ``kalman_filter`` and ``csf_jax.run(csf_jax.methods.kalman(), ...)`` drop it (None),

@@ -21,7 +21,7 @@ import optax
 
 from csf_jax import _checks, networks
 from csf_jax.dsm import dsm_fit
-from csf_jax.filters.csf import CSFConfig, particle_sampler, sampler_start
+from csf_jax.filters.csf import PAPER, CSFConfig, particle_sampler, sampler_start
 from csf_jax.filters.driver import Kernel, Method, StepOutput, run
 from csf_jax.filters.result import FilterResult
 from csf_jax.prior import unconditional_prior
@@ -117,7 +117,7 @@ SCORE_FILTER = Kernel("score_filter", _init, _step, _check, label="SF")
 
 @_checks.renamed_keywords(problem="model")
 def score_filter(obs, ensemble, *, model: StateSpaceModel, key, config: SFConfig = SFConfig(),
-                 sampler: CSFConfig = CSFConfig(), inputs=None, return_ensembles: bool = False,
+                 sampler: CSFConfig = PAPER, inputs=None, return_ensembles: bool = False,
                  check_finite: bool = True,
                  progress: Callable[[jax.Array], None] | None = None,
                  shards: int = 1) -> FilterResult:
@@ -130,8 +130,9 @@ def score_filter(obs, ensemble, *, model: StateSpaceModel, key, config: SFConfig
       model: the ``StateSpaceModel`` (static: hashable).
       key: a ``jax.random.key``; it also initialises the score net. Same key, same result.
       config: the per-step training budget and network (``SFConfig``).
-      sampler: reverse-SDE and guidance settings, shared with CSF (``CSFConfig``; SF samples from
-        its own score net alone, without CSF's mixture prior).
+      sampler: reverse-SDE, guidance and inflation settings, shared with CSF (``CSFConfig``;
+        default ``csf_jax.PAPER``, the paper's: SF samples from its own score net alone, without
+        CSF's mixture prior, and its innovation-triggered inflation is what follows a shock).
       inputs: a time-varying model's per-step inputs (leading axis K), or None.
       return_ensembles: also return the (K, N, d) posterior ensembles.
       check_finite: when called outside jit/vmap, raise FloatingPointError if the filter diverged.
@@ -153,7 +154,7 @@ def score_filter(obs, ensemble, *, model: StateSpaceModel, key, config: SFConfig
                progress=progress)
 
 
-def method(config: SFConfig = SFConfig(), sampler: CSFConfig = CSFConfig(),
+def method(config: SFConfig = SFConfig(), sampler: CSFConfig = PAPER,
            shards: int = 1) -> Method:
     """The score filter as a ``Method`` for ``csf_jax.run`` (arguments: ``score_filter``)."""
     if not isinstance(config, SFConfig) or not isinstance(sampler, CSFConfig):

@@ -52,6 +52,7 @@ a filter step, and a compiled step holds no CPU constant.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from collections.abc import Callable
@@ -62,14 +63,16 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from csf_jax.filters.csf import CSFConfig
+from csf_jax.filters.csf import PAPER, CSFConfig
 from csf_jax.guidance import GuidanceConfig
 from csf_jax.networks import NetworkConfig, fourier_frequencies
 from csf_jax.problems import CubicConfig, WellConfig, build
 from csf_jax.problems import config as problem_config
+from csf_jax.problems import get as get_problem
 from csf_jax.problems.cubic import coupling_matrix
 from csf_jax.sde import marginal_std_host
 from csf_jax.sde import noise_levels as host_noise_levels
+from csf_jax.ssm import tail_df
 
 DTYPE = torch.float32
 FLAX_LN_EPS = 1e-6
@@ -620,6 +623,19 @@ def _well(c: WellConfig, device: torch.device) -> TorchProblem:
                         *_cubic_sensor("gaussian", c.obs_std), c.obs_std, device)
 
 
+def model_config(config: CSFConfig, name: str, **overrides) -> CSFConfig:
+    """``config`` as csf_jax's filter step applies it to the problem ``name``: with the ancestral
+    sampler and no ``proposal_df`` of its own, the proposals take the heavy tails of the
+    problem's observation noise (``csf_jax.ssm.tail_df``: Cauchy noise, 1 dof)."""
+    df = tail_df(get_problem(name, **overrides))
+    guidance = config.sampler.guidance
+    if guidance.mode != "kalman" or guidance.proposal_df is not None or df is None:
+        return config
+    sampler = dataclasses.replace(config.sampler,
+                                  guidance=dataclasses.replace(guidance, proposal_df=df))
+    return dataclasses.replace(config, sampler=sampler)
+
+
 def torch_problem(name: str, *, device: torch.device | str = "cpu", **overrides) -> TorchProblem:
     """The torch version of ``csf_jax.problems.get(name, **overrides)`` (constants read from the
     same frozen configs), its constant tensors on ``device``."""
@@ -1004,7 +1020,7 @@ def first_reverse_step(nets: Networks, step: Callable, sched, ensemble: torch.Te
 
 @torch.no_grad()
 def csf_filter(nets: Networks, problem: TorchProblem, obs: torch.Tensor, ensemble: torch.Tensor,
-               config: CSFConfig = CSFConfig(), compile: bool = False, seed: int = 0,
+               config: CSFConfig = PAPER, compile: bool = False, seed: int = 0,
                step: Callable | None = None, mode: str | None = None,
                device: torch.device | str | None = None):
     """``K`` filter steps; returns ``(mean (K, d), std (K, d), last posterior ensemble (N, d))``.
@@ -1018,6 +1034,7 @@ def csf_filter(nets: Networks, problem: TorchProblem, obs: torch.Tensor, ensembl
     """
     device = ensemble.device if device is None else torch.device(device)
     obs, ensemble = obs.to(device), ensemble.to(device)
+    config = model_config(config, problem.name)
     step = make_reverse_step(nets, problem, config, compile, mode) if step is None else step
     sched = schedule(config, ensemble.dtype, device)
     gen = torch.Generator(device=device).manual_seed(seed)
