@@ -92,6 +92,7 @@ def test_quick_main_job_writes_its_table_results_and_figures(tmp_path, capsys):
     assert prior["mixture"] is not None
 
 
+@pytest.mark.slow
 def test_the_paper_preset_runs_the_paper_config_and_is_recorded(tmp_path, capsys):
     out = tmp_path / "out"
     _main("run")(["double_well", "--quick", "--preset", "paper", "--methods", "CSF,EnKF",
