@@ -257,7 +257,8 @@ def table(rows: list) -> list:
 
 
 def where(machine_record: dict) -> str:
-    """A results line's machine (also lorenz96_scaling's): the CPU and its cores, and the accelerator JAX ran on, if any."""
+    """A results line's machine (also lorenz96_scaling's): the CPU and its cores, and the
+    accelerator JAX ran on, if any."""
     m = machine_record
     cpu = f"{m['cpu']} ({m['cpu_count']} cores)"
     if m["jax_backend"] == "cpu":
@@ -339,7 +340,8 @@ def main(argv=None):
     record = harness.results_record("bench", harness.command("bench", argv), rows,
                                     sampler=sampler, loadavg=list(os.getloadavg()))
     m = record["machine"]
-    lines = [f"Made by `{record['command']}` on {record['date']}, {where(m)}. Sampler: {sampler}; seconds per filter step, the median of "
+    lines = [f"Made by `{record['command']}` on {record['date']}, {where(m)}. Sampler: "
+             f"{sampler}; seconds per filter step, the median of "
              f"{args.repeats} timed runs of {args.filter_steps} filter steps; compilation "
              f"apart.", ""] + table(rows)
     # a GPU's rows go to blocks of their own, so that a page keeps its CPU rows beside them

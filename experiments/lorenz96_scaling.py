@@ -77,7 +77,8 @@ def measure(dim: int, filter_name: str, members: int, steps: int, repeats: int, 
         t0 = time.perf_counter()
         result = call()
         seconds.append(time.perf_counter() - t0)
-    extra = (device.memory_stats()["peak_bytes_in_use"] / 2 ** 20 if gpu else _status("VmHWM")) - before
+    peak = device.memory_stats()["peak_bytes_in_use"] / 2 ** 20 if gpu else _status("VmHWM")
+    extra = peak - before
     err = np.sqrt(np.mean((np.asarray(result.mean) - np.asarray(truth)[1:]) ** 2, -1))
     ensemble_mib = members * dim * 4 / 2 ** 20
     return {"dim": dim, "filter": filter_name, "N": members, "steps": steps,

@@ -5,8 +5,9 @@
 
 ``ENTRIES`` declares the filters (``experiments.harness``): CSF with the shipped pretrained prior
 (``csf_jax.load_pretrained``; the triple well uses the double-well model, the paper's transfer
-experiment) and ``--preset``'s config (``csf_jax.filters.csf.PRESETS``: "default", ``CSFConfig()``,
-or "paper", ``csf_jax.PAPER``; the same on every problem, recorded in the results file), CSF-G (CSF's sampler with the ensemble's own Gaussian as the prior: what the learned
+experiment) and ``--preset``'s config (``csf_jax.filters.csf.PRESETS``: "default",
+``CSFConfig()``, or "paper", ``csf_jax.PAPER``; the same on every problem, recorded in the results
+file), CSF-G (CSF's sampler with the ensemble's own Gaussian as the prior: what the learned
 network has to beat), SF (a score net trained online at every step), the EnKF, the PF and the
 near-exact reference filter (``csf_jax.reference_filter``, shocks modelled, started from the model's
 initial law: the best achievable). Every filter gets the same runs; "RMSE / ref." is each one's RMSE
