@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import make_linear_case
+from conftest import MATMUL_ATOL, make_linear_case
 
 import csf_jax
 from csf_jax import CSFConfig, MixtureConfig, PriorConfig, mixture
@@ -177,17 +177,17 @@ def test_seen_directions():
     model = to_model(lg)
     ens = jax.random.normal(jax.random.key(0), (30, 4))
     np.testing.assert_allclose(mixture.seen_directions(model, jnp.zeros(2), ens),
-                               np.diag([1.0, 0.0, 1.0, 0.0]), atol=1e-6)
+                               np.diag([1.0, 0.0, 1.0, 0.0]), atol=MATMUL_ATOL)
     np.testing.assert_allclose(mixture.seen_directions(model, jnp.array([0.0, jnp.nan]), ens),
-                               np.diag([1.0, 0.0, 0.0, 0.0]), atol=1e-6)
+                               np.diag([1.0, 0.0, 0.0, 0.0]), atol=MATMUL_ATOL)
     row = np.array([[3.0, 4.0, 0.0, 0.0]])
     dense = to_model(linear_gaussian(4, 1, H=row))
     np.testing.assert_allclose(mixture.seen_directions(dense, jnp.zeros(1), ens),
-                               row.T @ row / 25.0, atol=1e-6)
+                               row.T @ row / 25.0, atol=MATMUL_ATOL)
     square = model._replace(observe=lambda x: x[::2] ** 2)
     half = ens.at[:15, 0].set(0.0)
     np.testing.assert_allclose(mixture.seen_directions(square, jnp.zeros(2), half),
-                               np.diag([0.5, 0.0, 1.0, 0.0]), atol=1e-6)
+                               np.diag([0.5, 0.0, 1.0, 0.0]), atol=MATMUL_ATOL)
 
 
 def test_observed_span_shocks_move_only_the_observed_coordinates():

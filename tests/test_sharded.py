@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import MATMUL_ATOL
 
 import csf_jax
 from csf_jax.filters.letkf import _probe, local_obs, sensor_sites
@@ -38,7 +39,7 @@ WORKER = os.path.join(HERE, "_distributed_worker.py")
 TIMEOUT = 150
 # float32 round-off: the window sums run in another order than csf_jax.letkf's (atol 1e-5 on
 # values of order 10 leaves the relative part to rtol)
-TOL = dict(rtol=1e-5, atol=1e-5)
+TOL = dict(rtol=max(1e-5, MATMUL_ATOL), atol=max(1e-5, MATMUL_ATOL))
 # the transform CSF in float64: 1e-14 step by step, but a Levenberg-Marquardt step that a
 # converged site accepts or refuses on a round-off difference of its cost moves it by up to 1e-9
 TOL64 = dict(rtol=0, atol=1e-7)
