@@ -46,15 +46,17 @@ LOST = 1.0
 TUNE_RUNS, TUNE_FIRST = 2, 100
 
 
-def _local(method: str, radius: float | None = None, inflation: float | None = None):
-    """Builder settings of a local filter on the case's ring; None: the config's defaults."""
+def _local(method: str, radius: float | None = None, inflation: float | None = None,
+           **fields):
+    """Builder settings of a local filter on the case's ring; None: the config's defaults;
+    ``fields``: other config fields."""
     def settings(case, model):
         loc = csf_jax.ring_localization(model.dim, obs_sites(problems.config(
             case.problem, **dict(case.settings))))
         config = csf_jax.LETKFConfig() if method == "letkf" else csf_jax.LocalTransformConfig()
         if radius is not None:
             config = dataclasses.replace(config, radius=radius, inflation=inflation)
-        return {"localization": loc, "config": config}
+        return {"localization": loc, "config": dataclasses.replace(config, **fields)}
 
     return settings
 
@@ -103,22 +105,65 @@ def setup_rows(name: str, cases, cache, progress, extra=()) -> list:
             entries.append(harness.Entry("EnSF", "ensf", {"config": csf_jax.ENSFConfig(clip=50.0)},
                                          batch=1))
         entries += list(extra)
-        found = harness.run([case], entries, cache, progress)
-        data = harness.simulate(case)
-        for entry in entries:
-            outcome = found[(case, entry.label)]
-            err = errors(outcome, case)
-            lost = ~np.isfinite(err) | (err > LOST)
-            row = harness.describe(case, entry, outcome) | harness.summary(outcome, data,
-                                                                           window(case))
-            tuned = chosen.get(entry.label)
-            row |= {"setup": name, "error": float(err.mean()), "lost": int(lost.sum()),
-                    "error_kept": float(err[~lost].mean()) if (~lost).any() else None,
-                    "tuned": None if tuned is None else {"radius": tuned[1][0],
-                                                         "inflation": tuned[1][1],
-                                                         "grid_scores": tuned[2]}}
+        for row in entry_rows(name, case, entries, cache, progress):
+            tuned = chosen.get(row["entry"])
+            row["tuned"] = None if tuned is None else {"radius": tuned[1][0],
+                                                       "inflation": tuned[1][1],
+                                                       "grid_scores": tuned[2]}
             rows.append(row)
     return rows
+
+
+def entry_rows(name: str, case: harness.Case, entries, cache, progress) -> list:
+    """Each entry's row on ``case`` of setup ``name``: its summary, the mean error over runs,
+    the lost runs and the mean error of the others."""
+    found = harness.run([case], entries, cache, progress)
+    data = harness.simulate(case)
+    rows = []
+    for entry in entries:
+        outcome = found[(case, entry.label)]
+        err = errors(outcome, case)
+        lost = ~np.isfinite(err) | (err > LOST)
+        rows.append(harness.describe(case, entry, outcome)
+                    | harness.summary(outcome, data, window(case))
+                    | {"setup": name, "error": float(err.mean()), "lost": int(lost.sum()),
+                       "error_kept": float(err[~lost].mean()) if (~lost).any() else None})
+    return rows
+
+
+# The adaptive inflation alone (``--study adaptive``): each filter at its default radius, with its
+# default fixed inflation and with the EnKF-N's (``adaptive``, no fixed inflation) at two
+# certainties; on runs of a seed of their own, apart from the tuned rows' test runs.
+ADAPTIVE_SEED = 11
+ADAPTIVE_RUNS = {"ensf_calm": 10, "ensf": 10, "identity": 5, "arctan": 3}
+ADAPTIVE_CERTAINTIES = (2.0, 4.0)
+
+
+def adaptive_rows(cache, progress) -> list:
+    """The rows of the adaptive-inflation study (``ADAPTIVE_RUNS``)."""
+    entries = []
+    for method, name in (("letkf", "LETKF"), ("local_transform", "transform CSF")):
+        entries.append(harness.Entry(f"{name}, fixed", method, _local(method), batch=1))
+        entries += [harness.Entry(f"{name}, EnKF-N {x:g}", method,
+                                  _local(method, 4.0, 1.0, adaptive=x), batch=1)
+                    for x in ADAPTIVE_CERTAINTIES]
+    return [row for name, runs in ADAPTIVE_RUNS.items()
+            for row in entry_rows(name, dataclasses.replace(SETUPS[name][0], runs=runs,
+                                                            seed=ADAPTIVE_SEED),
+                                  entries, cache, progress)]
+
+
+def adaptive_page(record: dict) -> list:
+    """The generated block of the adaptive-inflation study."""
+    m = record["machine"]
+    body = [[r["setup"], r["case"]["particles"], r["entry"], harness.number(r["error"], 4),
+             f"{r['lost']}/{r['runs']}", harness.number(r["error_kept"], 4)]
+            for r in record["rows"]]
+    return ([f"Made by `{record['command']}` on {record['date']}, {m['cpu']} ({m['cpu_count']} "
+             f"cores, jax {m['jax_backend']}). Seed {ADAPTIVE_SEED}, radius 4; \"fixed\": "
+             f"inflation 1.05; \"EnKF-N x\": `adaptive=x`, `inflation=1`. Error, lost and kept "
+             f"as in the table above.", ""]
+            + harness.table(["setup", "N", "filter", "error", "lost", "error of kept runs"], body))
 
 
 def page(record: dict) -> list:
@@ -147,8 +192,16 @@ def main(argv=None):
     harness.add_names(p, "--setups", SETUPS, what="setup")
     harness.add_sizes(p, runs=10)
     harness.add_outputs(p, "results/lorenz96", "docs/lorenz96.md")
+    p.add_argument("--study", choices=["adaptive"], default=None,
+                   help="instead of the setups, the adaptive-inflation study (ADAPTIVE_RUNS; its "
+                        "own block and results_adaptive.json)")
     args = p.parse_args(argv)
     cache, rows = harness.Cache(args.cache), []
+    if args.study == "adaptive":
+        record = harness.results_record("lorenz96", harness.command("lorenz96", argv),
+                                        adaptive_rows(cache, not args.no_progress))
+        harness.publish(args, record, adaptive_page(record), "results_adaptive.json", "adaptive")
+        return
     for name in args.setups:
         cases = [dataclasses.replace(c, runs=args.runs) for c in SETUPS[name]]
         rows += setup_rows(name, cases, cache, not args.no_progress, harness.extra_entries(args))

@@ -8,6 +8,7 @@ its device count when it starts, and this process has one device. Every subproce
 so a hang fails the test instead of blocking the suite.
 """
 
+import dataclasses
 import importlib.util
 import os
 import socket
@@ -262,6 +263,16 @@ def test_point_sensor_sites_beyond_float32_ramps():
         initial_ensemble=lambda key, n: jnp.zeros((n, d)))
     sites = sensor_sites(model, _probe(model))
     assert sites is not None and np.array_equal(sites, np.arange(1, d, 2))
+
+
+def test_adaptive_inflation_is_refused(small):
+    config = dataclasses.replace(small[2], adaptive=4.0)
+    with pytest.raises(ValueError, match="config.adaptive .* is not sharded"):
+        _call(small, config=config)
+    with pytest.raises(ValueError, match="config.adaptive .* is not sharded"):
+        sharded_transform_filter(small[3], small[4], model=small[0], key=jax.random.key(2),
+                                 localization=small[1],
+                                 config=csf_jax.LocalTransformConfig(adaptive=4.0))
 
 
 def test_mesh_without_a_sites_axis_is_refused(small):

@@ -19,13 +19,14 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from csf_jax import _checks
+from csf_jax import _checks, _linalg
 from csf_jax.covariance import gaspari_cohn
 from csf_jax.filters.driver import Kernel, Method, StepOutput, run
 from csf_jax.filters.enkf import check_standin
@@ -237,13 +238,27 @@ class LETKFConfig:
     Attributes:
       radius: Gaspari-Cohn half-width in site units (support 2 radius).
       inflation: multiplicative factor on the background anomalies (>= 1 typically).
+      adaptive: 0 (off), or the certainty ``x`` of the finite-size EnKF's hyperprior (EnKF-N,
+        Bocquet 2011, 2015; DAPPER's ``xN``): each step's anomalies are further scaled by the
+        factor that the EnKF-N's dual cost picks from the step's innovation
+        (``enkf_n_inflation``), on top of ``inflation``.
     """
 
     radius: float = 4.0
     inflation: float = 1.05
+    adaptive: float = 0.0
 
     def __post_init__(self):
         _checks.check_fields(self, positive=("radius", "inflation"))
+        check_adaptive(self)
+
+
+def check_adaptive(config) -> None:
+    """``config.adaptive`` is a finite number >= 0."""
+    a = config.adaptive
+    if isinstance(a, bool) or not isinstance(a, (int, float)) or not (0.0 <= a < float("inf")):
+        raise ValueError(f"{type(config).__name__}.adaptive must be a finite number >= 0 (0: "
+                         f"off), got {a!r}")
 
 
 def letkf_analysis(forecast, y, model: StateSpaceModel, index, weight):
@@ -277,10 +292,12 @@ def letkf_analysis(forecast, y, model: StateSpaceModel, index, weight):
 
 
 class LETKFStatic(NamedTuple):
-    """The LETKF's static settings for the driver: the half-width and the geometry."""
+    """The LETKF's static settings for the driver: the half-width, the geometry and the EnKF-N
+    hyperprior's certainty (0: no adaptive inflation)."""
 
     radius: float
     localization: Localization
+    adaptive: float = 0.0
 
 
 def ensemble_state(model, static, inflation, ensemble, key):
@@ -288,17 +305,83 @@ def ensemble_state(model, static, inflation, ensemble, key):
     return ensemble, key
 
 
-def inflated_forecast(model: StateSpaceModel, key, ensemble, inflation):
-    """The propagated ``ensemble (N, d)`` with its anomalies scaled by ``inflation`` (traced)."""
+def inflated_forecast(model: StateSpaceModel, key, ensemble, inflation, y=None,
+                      adaptive: float = 0.0):
+    """The propagated ``ensemble (N, d)`` with its anomalies scaled by ``inflation`` (traced),
+    and with ``adaptive > 0`` by the EnKF-N's factor for ``y (m,)`` (``enkf_n_inflation``)."""
     forecast = propagate(model, key, ensemble).astype(ensemble.dtype)
     center = forecast.mean(0)
-    return center + inflation.astype(ensemble.dtype) * (forecast - center)
+    scale = inflation.astype(ensemble.dtype)
+    if adaptive > 0:
+        inflated = center + scale * (forecast - center)
+        scale = scale * enkf_n_inflation(inflated, y, model, adaptive)
+    return center + scale * (forecast - center)
+
+
+#: the adaptive inflation's largest factor in one step (``enkf_n_inflation``)
+MAX_ADAPTIVE = 2.0
+
+
+@_linalg.precise
+def enkf_n_inflation(forecast, y, model: StateSpaceModel, certainty: float):
+    """The finite-size EnKF's inflation of ``forecast (N, d)``'s anomalies for ``y (m,)``: a
+    scalar >= 1 (NaN entries of ``y`` left out; 1 where none is observed).
+
+    The EnKF-N (Bocquet 2011; dual form, Bocquet, Raanes & Hannart 2015) treats the forecast
+    covariance as unknown, drawn around the ensemble's by a Jeffreys hyperprior, and picks the
+    anomalies' factor ``l`` that minimises, with ``S = R^{-1/2} Y'`` ``(N, m)`` the normalised
+    observation anomalies ``= V s U^T`` and ``u = U^T R^{-1/2} (y - y_bar)``,
+
+        J(l) = sum_k u_k^2 / (l^2 s_k^2 + N - 1) + e / l^2 + c log l^2,
+
+    ``e = (N + 1) / N``, ``c = N / (N - 1)``, after the mode correction of Bocquet et al.
+    (2015, their eq. 36: toward no inflation where the observations barely inform) and both
+    scaled by ``certainty`` (DAPPER's ``xN``: above 1 trusts the ensemble's spread more). The
+    minimiser is found on ``log l^2`` by bisection of ``J'`` (40 halvings), and the factor is
+    kept within ``[1, MAX_ADAPTIVE]``: it only widens the ensemble, and at most doubles it in one
+    step (after a jump of the truth the innovation asks for far more, and Lorenz-96's RK4
+    overflowed from ensembles widened 50-fold at once; over the next steps the factors compound).
+    """
+    n = forecast.shape[0]
+    n1 = n - 1
+    hx, R = gaussian_standin(model, forecast)
+    mask = observed(y)
+    r_isqrt = jnp.where(mask, 1.0 / jnp.sqrt(jnp.diagonal(R)), 0.0)
+    y_mean = hx.mean(0)
+    s_mat = (hx - y_mean) * r_isqrt                                   # (N, m)
+    innov = jnp.where(mask, jnp.where(mask, y, 0.0) - y_mean, 0.0) * r_isqrt
+    s2, vec = jnp.linalg.eigh(s_mat @ s_mat.T)                        # (N,), (N, N)
+    s2 = jnp.maximum(s2, 0.0)
+    proj = vec.T @ (s_mat @ innov)                                    # s_k u_k
+    u2 = jnp.where(s2 > 1e-10 * jnp.max(s2), proj**2 / jnp.maximum(s2, 1e-30), 0.0)
+    e = (n + 1.0) / n
+    c = n / n1
+    mode = e / c
+    keep = jnp.mean(n1 / (s2 + n1))                                   # ~ 1 / (1 + HBH/R)
+    correction = jnp.sqrt(mode**keep)
+    e, c = certainty * e / correction, certainty * c * correction
+
+    def slope(log_l2):                                                # dJ / d log l^2
+        l2 = jnp.exp(log_l2)
+        return -l2 * jnp.sum(u2 * s2 / (l2 * s2 + n1) ** 2) - e / l2 + c
+
+    def halve(_, bounds):
+        lo, hi = bounds
+        mid = 0.5 * (lo + hi)
+        up = slope(mid) > 0
+        return jnp.where(up, lo, mid), jnp.where(up, mid, hi)
+
+    dtype = forecast.dtype
+    bounds = (jnp.asarray(0.0, dtype), jnp.asarray(2.0 * math.log(MAX_ADAPTIVE), dtype))
+    lo, hi = jax.lax.fori_loop(0, 40, halve, bounds)
+    factor = jnp.exp(0.25 * (lo + hi))
+    return jnp.where(jnp.any(mask) & jnp.isfinite(factor), factor, 1.0).astype(dtype)
 
 
 def _step(model: StateSpaceModel, static: LETKFStatic, inflation, ensemble, y, key, time):
     """Forecast, inflate and analyse every site of ``ensemble (N, d)`` on ``y (m,)``."""
     index, weight = local_obs(static.localization, static.radius)
-    forecast = inflated_forecast(model, key, ensemble, inflation)
+    forecast = inflated_forecast(model, key, ensemble, inflation, y, static.adaptive)
     post = letkf_analysis(forecast, y, model, jnp.asarray(index), weight)
     return post, StepOutput(post.mean(0), post.std(0, ddof=1), post)
 
@@ -346,7 +429,8 @@ def method(localization: Localization | None = None, config: LETKFConfig = LETKF
     localization = require_localization(localization, "letkf")
     if not isinstance(config, LETKFConfig):
         raise TypeError(f"letkf: config must be a LETKFConfig, got {type(config).__name__}")
-    return Method(LETKF._replace(bind=_bind), LETKFStatic(float(config.radius), localization),
+    return Method(LETKF._replace(bind=_bind),
+                  LETKFStatic(float(config.radius), localization, float(config.adaptive)),
                   jnp.asarray(config.inflation))
 
 

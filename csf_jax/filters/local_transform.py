@@ -68,6 +68,7 @@ from csf_jax.covariance import gaspari_cohn
 from csf_jax.filters.driver import Kernel, Method, StepOutput, run
 from csf_jax.filters.letkf import (
     Localization,
+    check_adaptive,
     check_localization,
     ensemble_state,
     inflated_forecast,
@@ -99,6 +100,7 @@ class LocalTransformConfig:
       reverse_steps: L, the noise levels of the transport below the top, geometric from
         ``sigma_t(1)`` to ``sigma_t(t_min)`` (then 0), in units of the forecast's spread.
       t_min, sigma_max: the VE SDE's lowest time and scale (paper: sigma_max 25).
+      adaptive: 0 (off), or the EnKF-N hyperprior's certainty, as ``LETKFConfig.adaptive``.
     """
 
     radius: float = 4.0
@@ -108,9 +110,11 @@ class LocalTransformConfig:
     reverse_steps: int = 10
     t_min: float = 1e-3
     sigma_max: float = 25.0
+    adaptive: float = 0.0
 
     def __post_init__(self):
         _checks.check_fields(self, positive=("radius", "inflation"))
+        check_adaptive(self)
         for name in ("top_iterations", "iterations", "reverse_steps"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -732,7 +736,7 @@ class TransformStatic(NamedTuple):
 
 def _step(model: StateSpaceModel, static: TransformStatic, inflation, ensemble, y, key, time):
     """Forecast, inflate and analyse every site of ``ensemble (N, d)`` on ``y (m,)``."""
-    forecast = inflated_forecast(model, key, ensemble, inflation)
+    forecast = inflated_forecast(model, key, ensemble, inflation, y, static.config.adaptive)
     post = transform_analysis(forecast, y, model, static.localization, static.config,
                               chunk=static.chunk)
     return post, StepOutput(post.mean(0), post.std(0, ddof=1), post)
