@@ -131,12 +131,15 @@ def entry_rows(name: str, case: harness.Case, entries, cache, progress) -> list:
     return rows
 
 
-# The adaptive inflation alone (``--study adaptive``): each filter at its default radius, with its
-# default fixed inflation and with the EnKF-N's (``adaptive``, no fixed inflation) at two
-# certainties; on runs of a seed of their own, apart from the tuned rows' test runs.
+# The settings that adapt online, each alone (``--study adaptive``): each filter with its defaults
+# (radius 4, inflation 1.05), with the EnKF-N's inflation (``adaptive``, no fixed inflation) at two
+# certainties, and the LETKF with the radius chosen online from ``ADAPTIVE_RADII`` (``radii``),
+# alone and with the inflation;
+# on runs of a seed of their own, apart from the tuned rows' test runs.
 ADAPTIVE_SEED = 11
 ADAPTIVE_RUNS = {"ensf_calm": 10, "ensf": 10, "identity": 5, "arctan": 3}
 ADAPTIVE_CERTAINTIES = (2.0, 4.0)
+ADAPTIVE_RADII = (2.0, 4.0, 8.0, 16.0)
 
 
 def adaptive_rows(cache, progress) -> list:
@@ -147,6 +150,12 @@ def adaptive_rows(cache, progress) -> list:
         entries += [harness.Entry(f"{name}, EnKF-N {x:g}", method,
                                   _local(method, 4.0, 1.0, adaptive=x), batch=1)
                     for x in ADAPTIVE_CERTAINTIES]
+        if method == "letkf":
+            entries += [harness.Entry(f"{name}, radii", method,
+                                      _local(method, radii=ADAPTIVE_RADII), batch=1),
+                        harness.Entry(f"{name}, EnKF-N 2, radii", method,
+                                      _local(method, 4.0, 1.0, adaptive=2.0, radii=ADAPTIVE_RADII),
+                                      batch=1)]
     return [row for name, runs in ADAPTIVE_RUNS.items()
             for row in entry_rows(name, dataclasses.replace(SETUPS[name][0], runs=runs,
                                                             seed=ADAPTIVE_SEED),
@@ -160,10 +169,11 @@ def adaptive_page(record: dict) -> list:
              f"{r['lost']}/{r['runs']}", harness.number(r["error_kept"], 4)]
             for r in record["rows"]]
     return ([f"Made by `{record['command']}` on {record['date']}, {m['cpu']} ({m['cpu_count']} "
-             f"cores, jax {m['jax_backend']}). Seed {ADAPTIVE_SEED}, radius 4; \"fixed\": "
-             f"inflation 1.05; \"EnKF-N x\": `adaptive=x`, `inflation=1`. Error, lost and kept "
-             f"as in the table above.", ""]
-            + harness.table(["setup", "N", "filter", "error", "lost", "error of kept runs"], body))
+             f"cores, jax {m['jax_backend']}). Seed {ADAPTIVE_SEED}; \"fixed\": radius 4, "
+             f"inflation 1.05; \"EnKF-N x\": `adaptive=x`, `inflation=1`; \"radii\": "
+             f"`radii={ADAPTIVE_RADII}`. Error, lost and kept as in the table above.", ""]
+            + harness.table(["setup", "N", "filter", "error", "lost", "error of kept runs"],
+                            body))
 
 
 def page(record: dict) -> list:

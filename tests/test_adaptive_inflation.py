@@ -1,8 +1,10 @@
-"""The EnKF-N's adaptive inflation of the local filters (``LETKFConfig.adaptive``,
-``LocalTransformConfig.adaptive``): what it estimates on draws whose spread is known, and how the
-filters take it."""
+"""The local filters' settings that adapt online: the EnKF-N's inflation (``adaptive``, on
+``LETKFConfig`` and ``LocalTransformConfig``) and the LETKF's radius chosen by its evidence
+(``LETKFConfig.radii``): what each estimates on draws whose law is known, and how the filters
+take it."""
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -10,7 +12,7 @@ import numpy as np
 import pytest
 
 import csf_jax
-from csf_jax.filters.letkf import enkf_n_inflation
+from csf_jax.filters.letkf import enkf_n_inflation, obs_tapers, radius_evidence
 from csf_jax.problems.linear import linear_gaussian, to_model
 
 M, N = 60, 40
@@ -80,3 +82,71 @@ def test_filters_widen_a_collapsed_ensemble(name):
                   config=dataclasses.replace(base, adaptive=a)) for a in (0.0, 1.0)}
     assert float(runs[1.0].std[0].mean()) > float(runs[0.0].std[0].mean())
     assert csf_jax.rmse(runs[1.0].mean, truth[1:]) < csf_jax.rmse(runs[0.0].mean, truth[1:])
+
+
+# --- the radius chosen online ------------------------------------------------------------------
+
+
+def test_evidence_with_a_flat_taper_is_the_gaussian_log_density(x64):
+    """With every taper entry 1 the evidence is ``log N(y; y_bar, Y'Y'^T / (N - 1) + R)`` up to
+    ``-(m / 2) log 2 pi``; a missing entry drops out."""
+    ens, y = _case(3, 1.0)
+    ens, y = np.asarray(ens, np.float64)[:, :8] + 0.0, np.asarray(y, np.float64)[:8]
+    model = to_model(linear_gaussian(8, 8, H=np.eye(8), r_std=0.5))
+    got = radius_evidence(ens, y, model, np.ones((1, 8, 8)))[0]
+    cov = np.cov(ens.T) + 0.25 * np.eye(8)
+    r = y - ens.mean(0)
+    want = -0.5 * r @ np.linalg.solve(cov, r) - 0.5 * np.linalg.slogdet(cov)[1]
+    np.testing.assert_allclose(got, want, rtol=1e-10)
+    y = y.copy()
+    y[2] = np.nan
+    keep = [i for i in range(8) if i != 2]
+    sub = cov[np.ix_(keep, keep)]
+    want = -0.5 * r[keep] @ np.linalg.solve(sub, r[keep]) - 0.5 * np.linalg.slogdet(sub)[1]
+    np.testing.assert_allclose(radius_evidence(ens, y, model, np.ones((1, 8, 8)))[0], want,
+                               rtol=1e-10)
+
+
+@pytest.mark.parametrize("length, lo, hi", [(None, 0.0, 2.0), (8.0, 4.0, 16.0)])
+def test_evidence_picks_a_radius_near_the_errors_correlation_length(length, lo, hi):
+    """Forecast errors on a ring of 40 with Gaspari-Cohn correlations of half-width ``length``
+    (None: uncorrelated), 20 members drawn from the same law: summed over 30 draws, the evidence
+    is largest at a radius within ``[lo, hi]`` of the candidates 1 .. 16."""
+    d, n = 40, 20
+    radii = (1.0, 2.0, 4.0, 8.0, 16.0)
+    loc = csf_jax.ring_localization(d, np.arange(d))
+    corr = np.eye(d) if length is None else obs_tapers(loc, (length,))[0]
+    chol = np.linalg.cholesky(corr + 1e-9 * np.eye(d))
+    model = to_model(linear_gaussian(d, d, H=np.eye(d), r_std=0.3))
+    tapers = obs_tapers(loc, radii)
+    rng = np.random.default_rng(0)
+    total = np.zeros(len(radii))
+    for _ in range(30):
+        ens = (chol @ rng.standard_normal((d, n))).T
+        y = chol @ rng.standard_normal(d) + 0.3 * rng.standard_normal(d)
+        total += np.asarray(radius_evidence(jnp.asarray(ens, jnp.float32),
+                                            jnp.asarray(y, jnp.float32), model, tapers))
+    assert lo <= radii[int(np.argmax(total))] <= hi, total
+
+
+def test_one_candidate_radius_is_the_fixed_radius():
+    d = 20
+    model = to_model(linear_gaussian(d, d, H=np.eye(d), r_std=0.5, q_std=0.3))
+    loc = csf_jax.ring_localization(d, np.arange(d))
+    truth, obs = csf_jax.simulate(model, jax.random.key(0), num_steps=6)
+    ens = jax.random.normal(jax.random.key(1), (N, d))
+    run = functools.partial(csf_jax.letkf, obs, ens, model=model, key=jax.random.key(2),
+                            localization=loc)
+    fixed = run(config=csf_jax.LETKFConfig(radius=3.0))
+    one = run(config=csf_jax.LETKFConfig(radius=9.0, radii=(3.0,)))
+    np.testing.assert_array_equal(one.mean, fixed.mean)
+    several = csf_jax.LETKFConfig(radii=(1.0, 3.0, 8.0))
+    a, b = run(config=several), run(config=several)
+    np.testing.assert_array_equal(a.mean, b.mean)  # same key, same result
+    assert set(np.unique(np.asarray(a.info["radius"]))) <= {1.0, 3.0, 8.0}
+
+
+@pytest.mark.parametrize("bad", [(0.0,), (-1.0, 2.0), [2.0], (float("inf"),), (True,)])
+def test_refuses_bad_radii(bad):
+    with pytest.raises(ValueError, match="radii must be a tuple"):
+        csf_jax.LETKFConfig(radii=bad)

@@ -265,11 +265,11 @@ def test_point_sensor_sites_beyond_float32_ramps():
     assert sites is not None and np.array_equal(sites, np.arange(1, d, 2))
 
 
-def test_adaptive_inflation_is_refused(small):
-    config = dataclasses.replace(small[2], adaptive=4.0)
-    with pytest.raises(ValueError, match="config.adaptive .* is not sharded"):
-        _call(small, config=config)
-    with pytest.raises(ValueError, match="config.adaptive .* is not sharded"):
+@pytest.mark.parametrize("field", [dict(adaptive=4.0), dict(radii=(2.0, 4.0))])
+def test_adaptive_settings_are_refused(small, field):
+    with pytest.raises(ValueError, match="config.adaptive and config.radii .* are not sharded"):
+        _call(small, config=dataclasses.replace(small[2], **field))
+    with pytest.raises(ValueError, match="config.adaptive and config.radii .* are not sharded"):
         sharded_transform_filter(small[3], small[4], model=small[0], key=jax.random.key(2),
                                  localization=small[1],
                                  config=csf_jax.LocalTransformConfig(adaptive=4.0))

@@ -242,11 +242,15 @@ class LETKFConfig:
         Bocquet 2011, 2015; DAPPER's ``xN``): each step's anomalies are further scaled by the
         factor that the EnKF-N's dual cost picks from the step's innovation
         (``enkf_n_inflation``), on top of ``inflation``.
+      radii: () (off: ``radius`` throughout), or candidate radii: each step analyses at the one
+        whose Gaussian evidence for the observations, accumulated over the steps, is largest
+        (``radius_evidence``).
     """
 
     radius: float = 4.0
     inflation: float = 1.05
     adaptive: float = 0.0
+    radii: tuple = ()
 
     def __post_init__(self):
         _checks.check_fields(self, positive=("radius", "inflation"))
@@ -254,11 +258,18 @@ class LETKFConfig:
 
 
 def check_adaptive(config) -> None:
-    """``config.adaptive`` is a finite number >= 0."""
+    """``config.adaptive`` is a finite number >= 0 and ``config.radii`` (where it has one) a
+    tuple of positive numbers."""
     a = config.adaptive
     if isinstance(a, bool) or not isinstance(a, (int, float)) or not (0.0 <= a < float("inf")):
         raise ValueError(f"{type(config).__name__}.adaptive must be a finite number >= 0 (0: "
                          f"off), got {a!r}")
+    r = getattr(config, "radii", ())
+    if not isinstance(r, tuple) or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < float("inf")
+            for v in r):
+        raise ValueError(f"{type(config).__name__}.radii must be a tuple of positive numbers "
+                         f"(empty: the fixed radius), got {r!r}")
 
 
 def letkf_analysis(forecast, y, model: StateSpaceModel, index, weight):
@@ -291,6 +302,74 @@ def letkf_analysis(forecast, y, model: StateSpaceModel, index, weight):
     return mean + local.T
 
 
+#: the forgetting of the candidate radii's accumulated log evidence (``radius_evidence``): the
+#: evidence of an observed step weighs half after about 14 more
+RADIUS_MEMORY = 0.95
+
+
+def obs_tapers(loc: Localization, radii: tuple) -> np.ndarray:
+    """``(R, m, m)``: the Gaspari-Cohn taper of the distances between the observations, for each
+    of ``radii``."""
+    o = np.asarray(loc.obs, np.float64)
+    dist = np.abs(o[:, None] - o[None, :])
+    if loc.period is not None:
+        dist = np.minimum(dist, loc.period - dist)
+    return np.stack([gaspari_cohn(dist / r) for r in radii])
+
+
+@_linalg.precise
+def radius_evidence(forecast, y, model: StateSpaceModel, tapers):
+    """``(R,)``: for each taper ``rho_r (m, m)`` of ``tapers``, the log density (without its
+    ``-(m / 2) log 2 pi``, the same for every radius) of the observed entries of ``y (m,)``
+    under the forecast ``(N, d)``'s localised Gaussian,
+    ``N(y; y_bar, rho_r o (Y' Y'^T / (N - 1)) + R)`` (``o``: the elementwise product; ``Y'`` the
+    predicted observations' anomalies, ``gaussian_standin``). A radius that explains the
+    innovation without spurious long-range covariances has the largest; the cost is one
+    ``m x m`` Cholesky factor per radius, so it suits up to a few thousand observations. A taper
+    whose matrix is not positive definite there scores below every other radius."""
+    n = forecast.shape[0]
+    hx, R = gaussian_standin(model, forecast)
+    mask = observed(y)
+    y_mean = hx.mean(0)
+    anom = hx - y_mean
+    innov = jnp.where(mask, jnp.where(mask, y, 0.0) - y_mean, 0.0)
+    cov = anom.T @ anom / (n - 1)
+    both = mask[:, None] & mask[None, :]
+    eye = jnp.eye(cov.shape[0], dtype=cov.dtype)
+
+    def one(taper):
+        p = jnp.where(both, taper.astype(cov.dtype) * cov + R, eye)
+        chol = _linalg.cholesky(p)
+        z = _linalg.solve_lower(chol, innov)
+        return -0.5 * jnp.sum(z * z) - jnp.sum(jnp.log(jnp.diagonal(chol)))
+
+    ll = jax.vmap(one)(jnp.asarray(tapers))
+    ok = jnp.isfinite(ll)
+    floor = jnp.min(jnp.where(ok, ll, jnp.inf)) - 1e3
+    return jnp.where(ok, ll, jnp.where(jnp.any(ok), floor, 0.0))
+
+
+def ensemble_state(model, static, inflation, ensemble, key):
+    """A transform filter's ``init``: its state is the ensemble itself."""
+    return ensemble, key
+
+
+def radii_state(model, static, inflation, ensemble, key):
+    """A local filter's ``init``: the ensemble, and with candidate radii
+    (``static.radii``) their accumulated log evidence ``(R,)``, 0 at the start."""
+    if not static.radii:
+        return ensemble, key
+    return (ensemble, jnp.zeros((len(static.radii),), ensemble.dtype)), key
+
+
+def choose_radius(static, scores, forecast, y, model, localization):
+    """The next accumulated scores ``(R,)`` and the index of the radius to analyse at: the
+    largest score (ties: the first candidate)."""
+    evidence = radius_evidence(forecast, y, model, obs_tapers(localization, static.radii))
+    scores = jnp.where(jnp.any(observed(y)), RADIUS_MEMORY * scores + evidence, scores)
+    return scores, jnp.argmax(scores)
+
+
 class LETKFStatic(NamedTuple):
     """The LETKF's static settings for the driver: the half-width, the geometry and the EnKF-N
     hyperprior's certainty (0: no adaptive inflation)."""
@@ -298,11 +377,7 @@ class LETKFStatic(NamedTuple):
     radius: float
     localization: Localization
     adaptive: float = 0.0
-
-
-def ensemble_state(model, static, inflation, ensemble, key):
-    """A transform filter's ``init``: its state is the ensemble itself."""
-    return ensemble, key
+    radii: tuple = ()
 
 
 def inflated_forecast(model: StateSpaceModel, key, ensemble, inflation, y=None,
@@ -378,12 +453,23 @@ def enkf_n_inflation(forecast, y, model: StateSpaceModel, certainty: float):
     return jnp.where(jnp.any(mask) & jnp.isfinite(factor), factor, 1.0).astype(dtype)
 
 
-def _step(model: StateSpaceModel, static: LETKFStatic, inflation, ensemble, y, key, time):
-    """Forecast, inflate and analyse every site of ``ensemble (N, d)`` on ``y (m,)``."""
-    index, weight = local_obs(static.localization, static.radius)
+def _step(model: StateSpaceModel, static: LETKFStatic, inflation, state, y, key, time):
+    """Forecast, inflate and analyse every site of the ensemble ``(N, d)`` on ``y (m,)``; with
+    candidate radii, at the one ``choose_radius`` picks."""
+    ensemble = state[0] if static.radii else state
     forecast = inflated_forecast(model, key, ensemble, inflation, y, static.adaptive)
-    post = letkf_analysis(forecast, y, model, jnp.asarray(index), weight)
-    return post, StepOutput(post.mean(0), post.std(0, ddof=1), post)
+
+    def at(radius):
+        index, weight = local_obs(static.localization, radius)
+        return letkf_analysis(forecast, y, model, jnp.asarray(index), weight)
+
+    if not static.radii:
+        post = at(static.radius)
+        return post, StepOutput(post.mean(0), post.std(0, ddof=1), post)
+    scores, pick = choose_radius(static, state[1], forecast, y, model, static.localization)
+    post = jax.lax.switch(pick, [functools.partial(at, r) for r in static.radii])
+    info = {"radius": jnp.asarray(static.radii, forecast.dtype)[pick]}
+    return (post, scores), StepOutput(post.mean(0), post.std(0, ddof=1), post, info)
 
 
 def _check(model: StateSpaceModel, static: LETKFStatic) -> None:
@@ -393,7 +479,7 @@ def _check(model: StateSpaceModel, static: LETKFStatic) -> None:
     check_standin("letkf")(model, static)
 
 
-LETKF = Kernel("letkf", ensemble_state, _step, _check, label="LETKF")
+LETKF = Kernel("letkf", radii_state, _step, _check, label="LETKF")
 
 
 @_checks.renamed_keywords(problem="model")
@@ -430,7 +516,8 @@ def method(localization: Localization | None = None, config: LETKFConfig = LETKF
     if not isinstance(config, LETKFConfig):
         raise TypeError(f"letkf: config must be a LETKFConfig, got {type(config).__name__}")
     return Method(LETKF._replace(bind=_bind),
-                  LETKFStatic(float(config.radius), localization, float(config.adaptive)),
+                  LETKFStatic(float(config.radius), localization, float(config.adaptive),
+                              tuple(float(r) for r in config.radii)),
                   jnp.asarray(config.inflation))
 
 

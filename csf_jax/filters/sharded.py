@@ -387,9 +387,10 @@ def check_mesh_model(model: StateSpaceModel, config, config_type: type, mesh, na
     if not isinstance(config, config_type):
         raise TypeError(f"{name}: config must be a csf_jax.{config_type.__name__}, got "
                         f"{type(config).__name__}")
-    if config.adaptive:
-        raise ValueError(f"{name}: config.adaptive (the EnKF-N's inflation, from the whole "
-                         f"step's innovation) is not sharded; set it to 0 or use {one_device}")
+    if config.adaptive or getattr(config, "radii", ()):
+        raise ValueError(f"{name}: config.adaptive and config.radii (the EnKF-N's inflation, the "
+                         f"radius chosen online: both from the whole step's innovation) are not "
+                         f"sharded; leave them off or use {one_device}")
     if model.time_varying:
         raise ValueError(f"{name}: model {model.name!r} is time-varying; it filters "
                          f"time-invariant models (use {one_device})")
