@@ -23,14 +23,17 @@ wide Gaussians are not left to the sampler: under a weakly informative likelihoo
 volatility's) its early, far-flung Tweedie estimates overflow the likelihood.
 
 A step without an observed entry (an outage, or the first step with
-``SamplerConfig.assimilate_first`` False) brings no evidence, and its posterior is its prior: the
-particle and ensemble components at their prior odds, and no shock components. A jump can be told
+``SamplerConfig.assimilate_first`` False) brings no evidence, and its posterior is its prior. The
+propagated members ``f(x_i) + v_i`` are exact draws of that prior, so such a step keeps them: no
+component is chosen and nothing is redrawn. Redrawing a share of them from the ensemble's
+Gaussian at each blind step would replace the prior's shape (Lorenz-63's two lobes, forty steps
+into an outage) by its Gaussian, step after step, and leave the first observation after the
+outage a Gaussian to correct (docs/zoo.md). Nor are there shock components: a jump can be told
 from the ensemble only by an observation; drawn without one, a shock member is a point up to
 ``sqrt(max(shock_scales))`` (64) ensemble spreads off, which the dynamics carry wherever they go
-(Lorenz-96's RK4: to overflow), and
-which widens the next step's covariance and with it the next step's shock scales, a runaway over
-consecutive blind steps. The shock components of the next observed step, scaled to the ensemble
-there, cover a jump at any step in between.
+(Lorenz-96's RK4: to overflow), and which widens the next step's covariance and with it the next
+step's shock scales, a runaway over consecutive blind steps. The shock components of the next
+observed step, scaled to the ensemble there, cover a jump at any step in between.
 
 The particle and ensemble readings compete through their prior odds, updated by their evidence
 over the recent steps (log Bayes factor with forgetting ``memory``): on a model where the Gaussian
@@ -168,8 +171,9 @@ class Selection(NamedTuple):
     inflation: (1 + G,) ``tau^2`` of kinds 1.. (the ensemble's base inflation, then the shocks').
     log_bf: this step's log Bayes factor of the particle reading against the ensemble one.
     particle_weight, shock_weight: the posterior weights of the particle and shock components.
-    informed: whether the step assimilates an observed entry (``informative``); without one the
-      shock components are off, ``log_bf`` is 0 and the memory is carried unchanged.
+    informed: whether the step assimilates an observed entry (``informative``); without one
+      every member is kind 0 with its own propagated draw (``prior_ens``), the shock components
+      are off, ``particle_weight`` is 1, ``log_bf`` is 0 and the memory is carried unchanged.
     """
 
     kind: jax.Array
@@ -302,6 +306,11 @@ def select(model: StateSpaceModel, config: MixtureConfig, key, y, centers, prior
         shock_draws = jnp.take_along_axis(cand, pick[None, :, None], axis=0)[0]
         draws = jnp.where((kind > 1)[:, None], shock_draws, draws)
     log_bf = jnp.where(informed & jnp.isfinite(log_bf), log_bf, 0.0)
+    # without evidence the posterior is the prior, and the propagated members are exact draws of
+    # it (module docstring)
+    kind = jnp.where(informed, kind, 0)
+    draws = jnp.where(informed, draws, prior_ens)
+    particle_weight = jnp.where(informed, particle_weight, 1.0)
     return Selection(kind, draws, inflation, log_bf, particle_weight, shock_weight, informed)
 
 

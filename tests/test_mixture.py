@@ -294,11 +294,12 @@ def _outage_runs(num_steps: int, outage: slice, n: int, seeds):
             np.array(out["shock"]), float(np.std(out["truth"])))
 
 
-def test_a_step_without_observations_has_no_shock_components():
+def test_a_step_without_observations_keeps_its_prior_members():
     """The jump that wins the evidence when observed (``test_shock_component_takes_over``) is
     absent when ``y`` is all missing or not assimilated (``guide`` 0): no shock member, a Bayes
     factor of exactly 1, the step marked uninformed. Drawn there, a shock member sits up to 64
-    ensemble spreads off with nothing to refute it."""
+    ensemble spreads off with nothing to refute it. Every member keeps its own propagated draw,
+    an exact draw of the step's prior, rather than a redraw from a component."""
     model = csf_jax.problems.get("cubic10_indep", dim=3)
     key = jax.random.key(0)
     centers = 0.1 * jax.random.normal(key, (200, 3))
@@ -309,11 +310,13 @@ def test_a_step_without_observations_has_no_shock_components():
                                                      prior_ens, cov, 0.0, 2.0, guide))
     seen = select(y, 1.0)
     assert float(seen.shock_weight) > 0.9 and bool(seen.informed)
+    assert not np.array_equal(np.asarray(seen.draws), np.asarray(prior_ens))
     for y_step, guide in ((jnp.full((3,), jnp.nan), 1.0), (y, 0.0)):
         sel = select(y_step, guide)
         assert float(sel.shock_weight) == 0.0 and int(jnp.sum(sel.kind > 1)) == 0
         assert float(sel.log_bf) == 0.0 and not bool(sel.informed)
-        assert abs(float(sel.particle_weight) - float(jax.nn.sigmoid(2.0))) < 1e-6
+        assert int(jnp.sum(sel.kind != 0)) == 0 and float(sel.particle_weight) == 1.0
+        np.testing.assert_array_equal(np.asarray(sel.draws), np.asarray(prior_ens))
 
 
 def test_memory_is_kept_through_steps_without_evidence():
