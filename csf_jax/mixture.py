@@ -17,10 +17,17 @@ Each component's evidence ``int N(x; mu, B) p(y | x) dx`` is estimated by a few 
 steps to the mode of ``N(x; mu, B) p(y | x)`` and importance sampling from its Laplace Gaussian
 (``guidance.importance_weights``); members are resampled over all components by prior weight x
 evidence. A member that lands on a particle or shock component keeps an importance draw from that
-component's posterior; the ensemble component's members are drawn by the reverse-diffusion sampler
-(the only part of the step that uses the prior score, learned or Gaussian). The shock components'
-wide Gaussians are not left to the sampler: under a weakly informative likelihood (stochastic
-volatility's) its early, far-flung Tweedie estimates overflow the likelihood.
+component's posterior. The ensemble component's members are drawn by the reverse-diffusion sampler
+where the prior score is learned (the only part of the step that uses it); where it is the
+ensemble's Gaussian (``params=None``), ``ensemble_draws="transport"`` takes propagated members
+instead (a random subset) and moves them by the linear map that carries the ensemble's Gaussian
+onto the component's Laplace posterior (``gaussian_transport``: with a linear sensor, the
+ensemble transform Kalman filter's symmetric square root). Fresh draws from the posterior
+Gaussian would forget each member's own deviation, which carries the prior's shape beyond its two
+moments, and re-sample the covariance at every step; with few members that noise compounds
+(docs/zoo.md). The shock components' wide Gaussians are not left to the sampler: under a weakly
+informative likelihood (stochastic volatility's) its early, far-flung Tweedie estimates overflow
+the likelihood.
 
 A step without an observed entry (an outage, or the first step with
 ``SamplerConfig.assimilate_first`` False) brings no evidence, and its posterior is its prior. The
@@ -64,6 +71,9 @@ from csf_jax.ssm import (
     tail_df,
 )
 
+ENSEMBLE_DRAWS = ("transport", "sampler")
+NEWTON_SCHULZ_STEPS = 32
+
 
 @dataclasses.dataclass(frozen=True)
 class MixtureConfig:
@@ -103,6 +113,14 @@ class MixtureConfig:
         dimensions it is degenerate, and the next steps' ensemble collapses onto it
         (docs/defaults.md). The threshold is in dimensions, not a fraction of N: a 3-d model
         keeps its particles at any N, Lorenz-96 at d = 40 hands them over at N = 50.
+      ensemble_draws: how the ensemble component's members are drawn where its prior is the
+        ensemble's Gaussian (``params=None``; a learned prior score is always sampled):
+        "transport": propagated members moved by ``gaussian_transport``, the map from
+        the ensemble's Gaussian to the component's Laplace posterior that is symmetric in the
+        ensemble's whitened coordinates (with a linear sensor, the ensemble transform Kalman
+        filter's analysis); "sampler": fresh draws by the reverse-diffusion sampler. Transport by
+        measurement, one change against the other on the zoo at N = 50 and 1000 (docs/zoo.md);
+        it also spares the step the sampler's reverse steps.
       particle_kernel: 0 (off: the components ``N(f(x_i), Q)``), or a factor ``a`` in [0, 1] on
         Silverman's bandwidth ``h^2 = (4 / ((d + 2) N))^(2 / (d + 4))`` (``silverman``): the
         components become the kernels ``N(m + s (f(x_i) - m), Q + a h^2 C)`` of a regularised
@@ -126,6 +144,7 @@ class MixtureConfig:
     ensemble_proposals: int = 64
     particle_ess: float = 2.5
     particle_kernel: float = 1.0
+    ensemble_draws: str = "transport"
 
     def __post_init__(self):
         _checks.check_fields(self)
@@ -150,6 +169,9 @@ class MixtureConfig:
                 <= 1.0):
             raise ValueError(f"MixtureConfig.particle_kernel must lie in [0, 1], got "
                              f"{self.particle_kernel!r}")
+        if self.ensemble_draws not in ENSEMBLE_DRAWS:
+            raise ValueError(f"MixtureConfig.ensemble_draws must be one of {ENSEMBLE_DRAWS}, got "
+                             f"{self.ensemble_draws!r}")
         if self.shock_span not in ("observed", "isotropic"):
             raise ValueError(f"MixtureConfig.shock_span must be 'observed' or 'isotropic', got "
                              f"{self.shock_span!r}")
@@ -166,8 +188,10 @@ class Selection(NamedTuple):
     kind: (N,) int32 per posterior member: 0 a particle component, 1 the ensemble component,
       ``1 + g`` the shock component of scale g.
     draws: (N, d) each member's posterior draw from its particle or shock component (by
-      importance resampling); the ensemble component's members (``kind == 1``) are drawn by the
-      reverse-diffusion sampler instead.
+      importance resampling); the ensemble component's members (``kind == 1``): their
+      ``gaussian_transport`` of a random subset of the propagated members where ``select``
+      transports, else left to the reverse-diffusion sampler (these rows then hold a particle's
+      draw, unused).
     inflation: (1 + G,) ``tau^2`` of kinds 1.. (the ensemble's base inflation, then the shocks').
     log_bf: this step's log Bayes factor of the particle reading against the ensemble one.
     particle_weight, shock_weight: the posterior weights of the particle and shock components.
@@ -227,12 +251,14 @@ def precision(cov):
 
 @_linalg.precise
 def select(model: StateSpaceModel, config: MixtureConfig, key, y, centers, prior_ens, cov,
-           base_inflation, odds, guide) -> Selection:
+           base_inflation, odds, guide, transport: bool = False) -> Selection:
     """The evidence stage of one filter step (module docstring).
 
     centers: (N, d) ``f(x_i)``.  prior_ens: (N, d) ``f(x_i) + v_i``.  cov: (d, d) the ensemble
     component's covariance (the prior ensemble's, floored).  base_inflation: its ``tau^2``.
     odds: the particle reading's prior log-odds for this step.  guide: 1 to assimilate ``y``, 0 not.
+    transport: (static) the ensemble component's members are ``gaussian_transport``'s moves of
+    their own propagated draws (``transports``), not left to the sampler.
     """
     n, d = prior_ens.shape
     dtype = prior_ens.dtype
@@ -305,6 +331,13 @@ def select(model: StateSpaceModel, config: MixtureConfig, key, y, centers, prior
         pick = jax.random.categorical(jax.random.fold_in(k_shock, 1), log_wc, axis=0)
         shock_draws = jnp.take_along_axis(cand, pick[None, :, None], axis=0)[0]
         draws = jnp.where((kind > 1)[:, None], shock_draws, draws)
+    if transport:
+        # the members moved are a random subset: the systematic resampling orders the members by
+        # component, so a fixed block of positions would move the same members step after step,
+        # last step's shock members among them (the transport keeps an outlier an outlier)
+        chosen = prior_ens[jax.random.permutation(jax.random.fold_in(k_res, 1), n)]
+        moved = gaussian_transport(chosen, cov, u_ens[0, 0], chol_ens[0, 0])
+        draws = jnp.where((kind == 1)[:, None], moved, draws)
     log_bf = jnp.where(informed & jnp.isfinite(log_bf), log_bf, 0.0)
     # without evidence the posterior is the prior, and the propagated members are exact draws of
     # it (module docstring)
@@ -312,6 +345,57 @@ def select(model: StateSpaceModel, config: MixtureConfig, key, y, centers, prior
     draws = jnp.where(informed, draws, prior_ens)
     particle_weight = jnp.where(informed, particle_weight, 1.0)
     return Selection(kind, draws, inflation, log_bf, particle_weight, shock_weight, informed)
+
+
+def transports(config: MixtureConfig, prior_name: str) -> bool:
+    """Whether the ensemble component's members are transported (``MixtureConfig.ensemble_draws``)
+    under the prior score named ``prior_name`` (``PriorScore.name``): only the ensemble's own
+    Gaussian, whose posterior the map knows; a learned score is sampled."""
+    return config.ensemble_draws == "transport" and prior_name == "gaussian"
+
+
+@_linalg.precise
+def gaussian_transport(prior_ens, cov, u, chol):
+    """``prior_ens (N, d)`` moved onto the Laplace posterior ``N(u (d,), A^{-1})``
+    (``chol chol^T = A``, ``chol: (d, d)``) of the ensemble component with covariance
+    ``cov (d, d)`` (its members' mean m): ``x -> u + L (L^T A L)^{-1/2} L^{-1} (x - m)``, with
+    ``cov = L L^T``.
+
+    The map is linear, so the members' mean goes to ``u``, and it takes ``cov`` to exactly
+    ``A^{-1}``. Among such maps it is the one symmetric in the whitened coordinates
+    ``L^{-1} (x - m)``, which moves them least: with ``cov`` the members' sample covariance and a
+    linear sensor it is the ensemble transform Kalman filter's symmetric square root (Hunt et al.
+    2007; ``tests/test_mixture.py``). Each member keeps its own deviation, so what the prior holds
+    beyond its two moments (skew, a curved attractor) is carried into the posterior, where fresh
+    draws from ``N(u, A^{-1})`` would drop it. Matrix products and triangular solves only
+    (``inverse_sqrt``): no LAPACK call inside the filter's scan (docs/design.md).
+    """
+    mean = prior_ens.mean(0)
+    lower = _linalg.cholesky(cov)
+    whitened = _linalg.solve_lower(lower, prior_ens - mean)                  # (N, d)
+    k = chol.T @ lower                                                       # L^T A L = k^T k
+    root = inverse_sqrt(k.T @ k)
+    return u + (whitened @ root) @ lower.T
+
+
+@_linalg.precise
+def inverse_sqrt(a, iterations: int = NEWTON_SCHULZ_STEPS):
+    """``a^{-1/2}`` of a symmetric positive-definite ``a (d, d)`` by the coupled Newton-Schulz
+    iteration on ``a / |a|_F`` (whose eigenvalues lie in (0, 1]): ``T = (3 I - Z Y) / 2``,
+    ``Y <- Y T``, ``Z <- T Z``, with Z tending to ``(a / |a|_F)^{-1/2}``. An eigenvalue
+    ``lambda`` of the scaled matrix reaches full accuracy in about ``log(1 / lambda) / log(2.25)
+    + 5`` steps: 32 reach float64's rounding for condition numbers up to 1e8
+    (``tests/test_mixture.py``). Matrix products only."""
+    eye = jnp.eye(a.shape[-1], dtype=a.dtype)
+    norm = jnp.sqrt(jnp.sum(a * a))
+
+    def step(_, yz):
+        y, z = yz
+        t = 1.5 * eye - 0.5 * (z @ y)
+        return y @ t, t @ z
+
+    _, z = jax.lax.fori_loop(0, iterations, step, (a / norm, eye))
+    return 0.5 * (z + z.T) / jnp.sqrt(norm)
 
 
 def seen_directions(model: StateSpaceModel, y, ensemble):

@@ -48,6 +48,18 @@ def csf_config(case: harness.Case, preset: str = "default") -> CSFConfig:
     return PRESETS[preset]
 
 
+def csf_g_config(case: harness.Case, preset: str = "default") -> CSFConfig:
+    """CSF-G's config: CSF's (``csf_config``), with the ensemble component's members drawn by the
+    same reverse-diffusion sampler as CSF's (``MixtureConfig.ensemble_draws="sampler"``; with the
+    ensemble's Gaussian the default transports them), so that CSF against CSF-G is the learned
+    network against the Gaussian, nothing else."""
+    config = csf_config(case, preset)
+    if config.prior.mixture is None:
+        return config
+    mixture = dataclasses.replace(config.prior.mixture, ensemble_draws="sampler")
+    return dataclasses.replace(config, prior=dataclasses.replace(config.prior, mixture=mixture))
+
+
 def _csf(preset: str = "default"):
     def settings(case, model):
         return {"params": csf_jax.load_pretrained(case.problem),
@@ -58,7 +70,7 @@ def _csf(preset: str = "default"):
 
 def _csf_gaussian(preset: str = "default"):
     def settings(case, model):
-        config = csf_config(case, preset)
+        config = csf_g_config(case, preset)
         return {"prior": csf_jax.gaussian_prior(config.sampler.sigma_max,
                                                 config.prior.covariance), "config": config}
 

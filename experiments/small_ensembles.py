@@ -29,7 +29,7 @@ ESTIMATORS = {"sample": CovarianceConfig(), "Ledoit-Wolf": CovarianceConfig("led
 
 def _gaussian(covariance):
     def settings(case, model):
-        config = main_job.csf_config(case)
+        config = main_job.csf_g_config(case)
         config = dataclasses.replace(config, prior=dataclasses.replace(config.prior,
                                                                        covariance=covariance))
         return {"prior": csf_jax.gaussian_prior(config.sampler.sigma_max, covariance),

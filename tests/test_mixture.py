@@ -239,7 +239,7 @@ def test_bad_mixture_config_is_refused():
                 dict(particle_logodds=float("nan")), dict(particle_ess=float("inf")),
                 dict(shock_span="all"), dict(particle_ess=-0.1), dict(particle_kernel=1.5),
                 dict(particle_kernel=-0.1),
-                dict(particle_kernel=float("nan"))):
+                dict(particle_kernel=float("nan")), dict(ensemble_draws="fresh")):
         with pytest.raises(ValueError, match="MixtureConfig"):
             MixtureConfig(**bad)
     with pytest.raises(TypeError, match="mixture"):
@@ -399,3 +399,91 @@ def test_mixture_particles_without_a_process_noise_covariance_are_refused():
                                          r"noise covariance Q.*'sampler_only'.*"
                                          r"MixtureConfig\(particles=False\)"):
         csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(2), config=CSFConfig())
+
+
+def test_inverse_sqrt_matches_the_eigendecomposition(x64):
+    """Newton-Schulz against ``V diag(lambda^-1/2) V^T`` for symmetric positive-definite matrices:
+    to 1e-8 relative (Frobenius) in float64 up to condition number 1e8 (the iteration count
+    suffices), and to 1e-3 in float32 up to 1e4 (what float32's rounding allows)."""
+    rng = np.random.default_rng(3)
+    for d, cond, dtype, tol in ((1, 1.0, jnp.float64, 1e-8), (4, 10.0, jnp.float64, 1e-8),
+                                (40, 1e8, jnp.float64, 1e-8), (20, 1e3, jnp.float32, 1e-3),
+                                (40, 1e4, jnp.float32, 1e-3)):
+        q, _ = np.linalg.qr(rng.standard_normal((d, d)))
+        lam = np.geomspace(1.0, cond, d) * 0.37
+        a = (q * lam) @ q.T
+        exact = (q / np.sqrt(lam)) @ q.T
+        got = np.asarray(mixture.inverse_sqrt(jnp.asarray(a, dtype)))
+        assert got.dtype == dtype
+        assert np.linalg.norm(got - exact) <= tol * np.linalg.norm(exact), (d, cond, dtype)
+
+
+def _etkf(ens, H, R, y):
+    """The ensemble transform Kalman filter's analysis of ``ens (N, d)`` with a linear sensor:
+    mean by the Kalman gain, anomalies by the symmetric square root
+    ``(I + Y^T R^-1 Y / (N - 1))^{-1/2}`` in ensemble space (Hunt et al. 2007)."""
+    n = ens.shape[0]
+    mean = ens.mean(0)
+    xa = (ens - mean).T                                               # (d, N)
+    ya = H @ xa
+    a = np.eye(n) + ya.T @ np.linalg.solve(R, ya) / (n - 1)
+    lam, v = np.linalg.eigh(a)
+    w_mean = np.linalg.solve(a, ya.T @ np.linalg.solve(R, y - H @ mean)) / (n - 1)
+    t = (v / np.sqrt(lam)) @ v.T
+    return (mean + xa @ w_mean)[None, :] + (xa @ t).T
+
+
+def test_gaussian_transport_is_the_etkf_for_a_linear_sensor(x64):
+    """With the members' sample covariance and a linear sensor, the ensemble component's
+    transport (its Laplace posterior is the exact Kalman posterior) is the ETKF's analysis,
+    member by member, to 1e-8; its mean and covariance are the Kalman posterior's."""
+    lg = linear_gaussian(5, 3, r_std=0.3)
+    model = to_model(lg)
+    rng = np.random.default_rng(1)
+    ens = rng.standard_normal((12, 5)) @ np.diag([1.0, 2.0, 0.5, 1.5, 0.8]) + 0.3
+    y = np.array([0.4, -1.1, 2.0])
+    cov = np.cov(ens.T)
+    prec = jnp.asarray(np.linalg.inv(cov))
+    u, chol = mixture.kalman_tweedie(jnp.asarray(ens.mean(0))[None], prec,
+                                     lambda x: csf_jax.ssm.log_likelihood(model, jnp.asarray(y), x),
+                                     model.observe,
+                                     lambda x: csf_jax.ssm.curvature(model, jnp.asarray(y), x),
+                                     jnp.asarray(ens.mean(0))[None], 1.0, 2, damped=True)
+    moved = np.asarray(mixture.gaussian_transport(jnp.asarray(ens), jnp.asarray(cov), u[0], chol[0]))
+    expected = _etkf(ens, lg.H, lg.obs_cov(), y)
+    np.testing.assert_allclose(moved, expected, atol=1e-8)
+    gain = cov @ lg.H.T @ np.linalg.inv(lg.H @ cov @ lg.H.T + lg.obs_cov())
+    np.testing.assert_allclose(moved.mean(0), ens.mean(0) + gain @ (y - lg.H @ ens.mean(0)),
+                               atol=1e-8)
+    np.testing.assert_allclose(np.cov(moved.T), cov - gain @ lg.H @ cov, atol=1e-8)
+
+
+def test_the_transport_moves_a_random_subset_of_the_members_and_skips_the_sampler(x64):
+    """Under the ensemble's Gaussian with ``ensemble_draws="transport"`` (the default), the
+    ensemble component's members are the propagated members themselves, each moved by the
+    Gaussian transport onto the component's posterior (here the Kalman one, linear sensor), in a
+    random order; with ``"sampler"``, and under any prior score but the Gaussian, the sampler draws
+    them."""
+    assert mixture.transports(MixtureConfig(), "gaussian")
+    assert not mixture.transports(MixtureConfig(ensemble_draws="sampler"), "gaussian")
+    assert not mixture.transports(MixtureConfig(), "learned")
+    lg = linear_gaussian(3, 2, r_std=0.5)
+    model = to_model(lg)
+    rng = np.random.default_rng(2)
+    ens = rng.standard_normal((64, 3))
+    y = np.array([0.5, -0.5])
+    cov = np.cov(ens.T)
+    sel = mixture.select(model, MixtureConfig(particles=False, shock_hazard=0.0), jax.random.key(0),
+                         jnp.asarray(y), jnp.asarray(ens), jnp.asarray(ens), jnp.asarray(cov), 0.0,
+                         0.0, 1.0, transport=True)
+    assert bool(jnp.all(sel.kind == 1))
+    a = np.linalg.inv(cov) + lg.H.T @ np.linalg.solve(lg.obs_cov(), lg.H)
+    u = np.linalg.solve(a, np.linalg.solve(cov, ens.mean(0)) + lg.H.T @ np.linalg.solve(
+        lg.obs_cov(), y))
+    expected = np.asarray(mixture.gaussian_transport(jnp.asarray(ens), jnp.asarray(cov),
+                                                     jnp.asarray(u), jnp.linalg.cholesky(a)))
+    got = np.asarray(sel.draws)
+    dist = np.linalg.norm(got[:, None] - expected[None], axis=-1)             # (N, N)
+    match = dist.argmin(1)
+    assert np.all(dist.min(1) < 1e-6) and len(set(match.tolist())) == len(match)
+    assert not np.array_equal(match, np.arange(len(match)))                    # shuffled

@@ -416,10 +416,13 @@ def _step(model: StateSpaceModel, static: CSFStatic, params, state, y, key, time
         return (post, memory), _output(post, jnp.all(jnp.isfinite(prior_ens)))
     moments = ensemble_moments(prior_ens, covariance=config.prior.covariance)
     odds = config.prior.mixture.particle_logodds + memory
+    transport = mixture.transports(config.prior.mixture, prior.name)
     sel = mixture.select(model, config.prior.mixture, jax.random.fold_in(key, 3), y, centers, prior_ens,
-                         moments.cov, jnp.square(start.tau), odds, guide)
-    post = sample(params, context, y, x_init, start, k_rev, guide)
-    post = jnp.where((sel.kind == 1)[:, None], post, sel.draws)
+                         moments.cov, jnp.square(start.tau), odds, guide, transport)
+    post = sel.draws
+    if not transport:
+        post = jnp.where((sel.kind == 1)[:, None],
+                         sample(params, context, y, x_init, start, k_rev, guide), post)
     memory, _ = mixture.next_odds(config.prior.mixture, memory, sel.log_bf, sel.informed)
     info = {"particle_weight": sel.particle_weight, "shock_weight": sel.shock_weight}
     kept = jnp.all(jnp.isfinite(prior_ens)) & jnp.all(jnp.isfinite(moments.cov))
