@@ -107,7 +107,8 @@ def test_evidence_with_a_flat_taper_is_the_gaussian_log_density(x64):
                                rtol=1e-10)
 
 
-@pytest.mark.parametrize("length, lo, hi", [(None, 0.0, 2.0), (8.0, 4.0, 16.0)])
+@pytest.mark.parametrize("length, lo, hi", [(None, 0.0, 2.0),
+                                            pytest.param(8.0, 4.0, 16.0, marks=pytest.mark.slow)])
 def test_evidence_picks_a_radius_near_the_errors_correlation_length(length, lo, hi):
     """Forecast errors on a ring of 40 with Gaspari-Cohn correlations of half-width ``length``
     (None: uncorrelated), 20 members drawn from the same law: summed over 30 draws, the evidence

@@ -88,7 +88,9 @@ FILTERS = {
 
 
 CASES = [(name, False) for name in FILTERS] + [(name, True) for name in ("pf", "enkf", "csf")]
-SLOW = {("sf", False)}  # SF trains online: kept out of the default run's time budget
+# kept out of the default run's time budget: SF trains online; CSF's full-covariance case
+# covers its handling of gaps
+SLOW = {("sf", False), ("csf", False)}
 
 
 @pytest.mark.parametrize("name,full", [
