@@ -130,6 +130,7 @@ def test_evidence_picks_a_radius_near_the_errors_correlation_length(length, lo, 
     assert lo <= radii[int(np.argmax(total))] <= hi, total
 
 
+@pytest.mark.slow  # kept out of the default run's time budget: a limit case of the radius choice
 def test_one_candidate_radius_is_the_fixed_radius():
     d = 20
     model = to_model(linear_gaussian(d, d, H=np.eye(d), r_std=0.5, q_std=0.3))

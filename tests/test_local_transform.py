@@ -279,6 +279,7 @@ def test_two_observations_of_a_site_chunked(x64):
         np.testing.assert_allclose(np.asarray(got), want, rtol=0, atol=1e-9)
 
 
+@pytest.mark.slow  # kept out of the default run's time budget: the analysis's case covers it
 def test_chunked_filter_is_the_unchunked_one(x64):
     """The filter with ``chunk=4`` (classes of 4 sites, member groups) against the whole block."""
     model = csf_jax.problems.get("lorenz96_arctan", dim=40, num_steps=4, burn_in=0)

@@ -161,7 +161,9 @@ def _two_processes(tmp_path, local_devices: int, filter_name: str) -> tuple:
     return model, loc, obs, ens, datas
 
 
-@pytest.mark.parametrize("local_devices", [1, pytest.param(2, marks=pytest.mark.slow)])
+# both slow: two processes each compile the filter (kept out of the default run's time budget)
+@pytest.mark.parametrize("local_devices", [pytest.param(1, marks=pytest.mark.slow),
+                                           pytest.param(2, marks=pytest.mark.slow)])
 def test_sharded_over_two_processes_equals_letkf(tmp_path, local_devices):
     model, loc, obs, ens, datas = _two_processes(tmp_path, local_devices, "letkf")
     ref = csf_jax.letkf(obs, ens, model=model, key=jax.random.key(2), localization=loc,
