@@ -5,9 +5,9 @@
 
 Setups (``csf_jax.problems``):
 
-* ``identity``: d = 40, every site observed with R = I, N = 20 and 40, 1000 steps;
-* ``arctan``: d = 40, an arctan sensor with noise std 0.05, N = 40, started from the problem's
-  initial ensemble and from the truth (``x_0 + N(0, 0.1^2 I)``);
+* ``identity``: d = 40, every site observed with R = I, N = 10, 20 and 40, 1000 steps;
+* ``arctan``: d = 40, an arctan sensor with noise std 0.05, N = 10, 20 and 40 started from the
+  problem's initial ensemble, and N = 40 from the truth (``x_0 + N(0, 0.1^2 I)``);
 * ``ensf`` and ``ensf_calm``: EnSF's setup (``lorenz96_ensf``: d = 100, arctan sensor, N = 20, an
   ``N(0, I)`` ensemble far from the truth), with its random shocks of the truth and without.
 
@@ -34,9 +34,9 @@ from experiments import harness
 D40 = (("num_steps", 1000), ("burn_in", 200))
 CALM = (("shock_probs", ()), ("shock_sizes", ()))
 SETUPS = {  # name: (test cases, d = 40 grid or EnSF grid)
-    "identity": [harness.Case("lorenz96", D40, particles=n) for n in (20, 40)],
-    "arctan": [harness.Case("lorenz96_arctan", D40, particles=40),
-               harness.Case("lorenz96_arctan", D40, particles=40, start="truth", spread=0.1)],
+    "identity": [harness.Case("lorenz96", D40, particles=n) for n in (10, 20, 40)],
+    "arctan": [harness.Case("lorenz96_arctan", D40, particles=n) for n in (10, 20, 40)]
+              + [harness.Case("lorenz96_arctan", D40, particles=40, start="truth", spread=0.1)],
     "ensf": [harness.Case("lorenz96_ensf", particles=20)],
     "ensf_calm": [harness.Case("lorenz96_ensf", CALM, particles=20)],
 }
@@ -48,14 +48,16 @@ TUNE_RUNS, TUNE_FIRST = 2, 100
 
 def _local(method: str, radius: float | None = None, inflation: float | None = None,
            **fields):
-    """Builder settings of a local filter on the case's ring; None: the config's defaults;
-    ``fields``: other config fields."""
+    """Builder settings of a local filter on the case's ring; None: the config's defaults; a
+    given radius and inflation are fixed settings (no adaptive inflation unless ``fields`` sets
+    one); ``fields``: other config fields."""
     def settings(case, model):
         loc = csf_jax.ring_localization(model.dim, obs_sites(problems.config(
             case.problem, **dict(case.settings))))
         config = csf_jax.LETKFConfig() if method == "letkf" else csf_jax.LocalTransformConfig()
         if radius is not None:
-            config = dataclasses.replace(config, radius=radius, inflation=inflation)
+            config = dataclasses.replace(config, radius=radius, inflation=inflation,
+                                         adaptive=0.0)
         return {"localization": loc, "config": dataclasses.replace(config, **fields)}
 
     return settings
@@ -131,13 +133,15 @@ def entry_rows(name: str, case: harness.Case, entries, cache, progress) -> list:
     return rows
 
 
-# The settings that adapt online, each alone (``--study adaptive``): each filter with its defaults
-# (radius 4, inflation 1.05), with the EnKF-N's inflation (``adaptive``, no fixed inflation) at two
-# certainties, and the LETKF with the radius chosen online from ``ADAPTIVE_RADII`` (``radii``),
-# alone and with the inflation;
+# The settings that adapt online, each alone (``--study adaptive``): each filter at radius 4 with
+# the fixed inflation 1.05, with the EnKF-N's inflation (``adaptive``, no fixed inflation) at two
+# certainties, the LETKF with the radius chosen online from ``ADAPTIVE_RADII`` (``radii``), alone
+# and with the inflation, the transform CSF without its trust bound (``trust=0``) and with its
+# defaults (radius 6, the EnKF-N's inflation at certainty 2, the bound);
 # on runs of a seed of their own, apart from the tuned rows' test runs.
 ADAPTIVE_SEED = 11
 ADAPTIVE_RUNS = {"ensf_calm": 10, "ensf": 10, "identity": 5, "arctan": 3}
+ADAPTIVE_PARTICLES = {"ensf_calm": 20, "ensf": 20, "identity": 20, "arctan": 40}
 ADAPTIVE_CERTAINTIES = (2.0, 4.0)
 ADAPTIVE_RADII = (2.0, 4.0, 8.0, 16.0)
 
@@ -146,18 +150,29 @@ def adaptive_rows(cache, progress) -> list:
     """The rows of the adaptive-inflation study (``ADAPTIVE_RUNS``)."""
     entries = []
     for method, name in (("letkf", "LETKF"), ("local_transform", "transform CSF")):
-        entries.append(harness.Entry(f"{name}, fixed", method, _local(method), batch=1))
+        entries.append(harness.Entry(f"{name}, fixed", method, _local(method, 4.0, 1.05),
+                                     batch=1))
         entries += [harness.Entry(f"{name}, EnKF-N {x:g}", method,
                                   _local(method, 4.0, 1.0, adaptive=x), batch=1)
                     for x in ADAPTIVE_CERTAINTIES]
+        if method == "local_transform":
+            entries += [harness.Entry(f"{name}, fixed, unbounded", method,
+                                      _local(method, 4.0, 1.05, trust=0.0), batch=1),
+                        harness.Entry(f"{name}, EnKF-N 2, unbounded", method,
+                                      _local(method, 4.0, 1.0, adaptive=2.0,
+                                             trust=0.0), batch=1),
+                        harness.Entry(f"{name}, defaults", method, _local(method), batch=1)]
         if method == "letkf":
             entries += [harness.Entry(f"{name}, radii", method,
                                       _local(method, radii=ADAPTIVE_RADII), batch=1),
                         harness.Entry(f"{name}, EnKF-N 2, radii", method,
                                       _local(method, 4.0, 1.0, adaptive=2.0, radii=ADAPTIVE_RADII),
                                       batch=1)]
+    cases = {name: next(c for c in SETUPS[name]
+                        if c.particles == ADAPTIVE_PARTICLES[name] and c.start == "model")
+             for name in ADAPTIVE_RUNS}
     return [row for name, runs in ADAPTIVE_RUNS.items()
-            for row in entry_rows(name, dataclasses.replace(SETUPS[name][0], runs=runs,
+            for row in entry_rows(name, dataclasses.replace(cases[name], runs=runs,
                                                             seed=ADAPTIVE_SEED),
                                   entries, cache, progress)]
 
@@ -170,8 +185,10 @@ def adaptive_page(record: dict) -> list:
             for r in record["rows"]]
     return ([f"Made by `{record['command']}` on {record['date']}, {m['cpu']} ({m['cpu_count']} "
              f"cores, jax {m['jax_backend']}). Seed {ADAPTIVE_SEED}; \"fixed\": radius 4, "
-             f"inflation 1.05; \"EnKF-N x\": `adaptive=x`, `inflation=1`; \"radii\": "
-             f"`radii={ADAPTIVE_RADII}`. Error, lost and kept as in the table above.", ""]
+             f"inflation 1.05; \"EnKF-N x\": radius 4, `adaptive=x`, `inflation=1`; \"radii\": "
+             f"`radii={ADAPTIVE_RADII}`; \"unbounded\": `trust=0`; \"defaults\": "
+             f"`LocalTransformConfig()` (radius 6, `adaptive=2`, `inflation=1`, `trust=6`). "
+             f"Error, lost and kept as in the table above.", ""]
             + harness.table(["setup", "N", "filter", "error", "lost", "error of kept runs"],
                             body))
 

@@ -53,7 +53,8 @@ def measure(dim: int, filter_name: str, members: int, steps: int, repeats: int, 
     ens = model.initial_ensemble(jax.random.key(1000), members)
     loc = csf_jax.ring_localization(dim, range(dim))
     if filter_name == "transform":
-        config = csf_jax.LocalTransformConfig(radius=radius, inflation=inflation)
+        # the fixed inflation of the LETKF's row (no EnKF-N factor), so the two time one analysis
+        config = csf_jax.LocalTransformConfig(radius=radius, inflation=inflation, adaptive=0.0)
         method = csf_jax.methods.local_transform(loc, config)
     else:
         config = csf_jax.LETKFConfig(radius=radius, inflation=inflation)

@@ -269,12 +269,10 @@ def test_point_sensor_sites_beyond_float32_ramps():
 
 @pytest.mark.parametrize("field", [dict(adaptive=4.0), dict(radii=(2.0, 4.0))])
 def test_adaptive_settings_are_refused(small, field):
+    # the sharded LETKF refuses both; the sharded transform CSF shards the EnKF-N's inflation
+    # (its default; test_one_device_transform_equals_local_transform)
     with pytest.raises(ValueError, match="config.adaptive and config.radii .* are not sharded"):
         _call(small, config=dataclasses.replace(small[2], **field))
-    with pytest.raises(ValueError, match="config.adaptive and config.radii .* are not sharded"):
-        sharded_transform_filter(small[3], small[4], model=small[0], key=jax.random.key(2),
-                                 localization=small[1],
-                                 config=csf_jax.LocalTransformConfig(adaptive=4.0))
 
 
 def test_mesh_without_a_sites_axis_is_refused(small):

@@ -20,9 +20,15 @@ levels ``sigma_0 > ... > sigma_L = 0``:
   flow of that Gaussian: ``w_n <- mu_n + (P + sigma_{l+1}^2)^{1/2} (P + sigma_l^2)^{-1/2}
   (w_n - mu_n)``.
 
+Every step toward the mode and every Tweedie step is kept within ``trust sqrt(N)`` of the
+forecast mean in these coordinates (``LocalTransformConfig.trust``): beyond it the sample
+covariance would carry a flat sensor's far observation hundreds of spreads to the neighbouring
+sites.
+
 With a linear sensor every ``mu_n`` is the same ``mu`` and the maps telescope to
 ``mu + P^{1/2} sqrt(N - 1) e_n``: the LETKF's analysis with its symmetric square root, whatever
-the levels and iterations (tested to float64 round-off). With a nonlinear sensor the mode replaces
+the levels and iterations, wherever the mode lies within the bound (tested to float64
+round-off). With a nonlinear sensor the mode replaces
 the LETKF's single linearisation at the forecast mean, and each member is moved by the sensor's
 residual at its own point on the way down, so the ensemble keeps the posterior's skew.
 
@@ -91,7 +97,8 @@ class LocalTransformConfig:
 
     Attributes:
       radius: Gaspari-Cohn half-width of the R-localisation, in sites (support ``2 radius``; 1.82x
-        DAPPER's ``loc_rad``), as ``LETKFConfig.radius``.
+        DAPPER's ``loc_rad``), as ``LETKFConfig.radius``. The default 6 lost no run on the
+        Lorenz-96 page's tuning runs at N = 10 to 40 (docs/lorenz96.md).
       inflation: multiplicative factor on the forecast anomalies, as ``LETKFConfig.inflation``.
       top_iterations: Gauss-Newton steps to the local posterior's mode (1 is the LETKF's analysis
         linearised at the forecast mean; a saturating sensor such as arctan needs several).
@@ -100,20 +107,30 @@ class LocalTransformConfig:
       reverse_steps: L, the noise levels of the transport below the top, geometric from
         ``sigma_t(1)`` to ``sigma_t(t_min)`` (then 0), in units of the forecast's spread.
       t_min, sigma_max: the VE SDE's lowest time and scale (paper: sigma_max 25).
-      adaptive: 0 (off), or the EnKF-N hyperprior's certainty, as ``LETKFConfig.adaptive``.
+      adaptive: 0 (off), or the EnKF-N hyperprior's certainty, as ``LETKFConfig.adaptive``: each
+        step's anomalies are scaled by the factor the step's innovation calls for (1 to 2), on top
+        of ``inflation``. The default 2 with ``inflation`` 1 catches the truth again after its
+        jumps, where a fixed 1.05 loses it (docs/lorenz96.md).
+      trust: the largest norm of a site's ensemble-space point (the mode's and each member's
+        Tweedie estimate), in units of ``sqrt(N)``, the typical norm of ``w ~ N(0, I_N)``; a step
+        beyond it is shortened onto it. After a jump of the truth an observation far out on a
+        flat sensor asks for a move of hundreds of forecast spreads, which the sample covariance
+        would carry to the neighbouring sites; bounded, the filter follows the jump over several
+        steps as the inflation widens the ensemble. 0: no bound.
     """
 
-    radius: float = 4.0
-    inflation: float = 1.05
+    radius: float = 6.0
+    inflation: float = 1.0
     top_iterations: int = 5
     iterations: int = 1
     reverse_steps: int = 10
     t_min: float = 1e-3
     sigma_max: float = 25.0
-    adaptive: float = 0.0
+    adaptive: float = 2.0
+    trust: float = 6.0
 
     def __post_init__(self):
-        _checks.check_fields(self, positive=("radius", "inflation"))
+        _checks.check_fields(self, positive=("radius", "inflation"), nonnegative=("trust",))
         check_adaptive(self)
         for name in ("top_iterations", "iterations", "reverse_steps"):
             value = getattr(self, name)
@@ -546,6 +563,15 @@ def _total(x, axis: int):
                                                   for k in range(x.shape[axis])])
 
 
+def _within(u, axis: int, bound: float):
+    """``u`` shortened, where its norm over ``axis`` exceeds ``bound``, onto that norm (0: no
+    bound)."""
+    if bound == 0:
+        return u
+    norm = jnp.sqrt(_total(u * u, axis))
+    return u * jnp.expand_dims(jnp.minimum(1.0, bound / jnp.maximum(norm, bound * 1e-30)), axis)
+
+
 def _levels(config: LocalTransformConfig):
     """``(L + 1,)`` float64 noise levels: geometric from ``sigma_t(1)`` to ``sigma_t(t_min)``,
     then 0."""
@@ -566,6 +592,7 @@ def analysis(forecast, y_sites, prec_sites, observe, plan: TransformPlan,
     dtype = forecast.dtype
     group = member_group(plan, n)
     levels = _levels(config)
+    bound = float(config.trust) * math.sqrt(n)      # the norm of the trusted ensemble-space points
     mean = forecast.mean(0)
     z = (forecast - mean) / jnp.sqrt(jnp.asarray(n - 1, dtype))                # (N, d)
     mask = observed(y_sites)
@@ -602,7 +629,7 @@ def analysis(forecast, y_sites, prec_sites, observe, plan: TransformPlan,
             lowers the site's cost, else the damping grows fourfold (a linear sensor's first
             step is exact and final)."""
             u, h, dh, c_u, lm = carry
-            trial = trial_of(u, h, dh, lm, zs, rho, yw)
+            trial = _within(trial_of(u, h, dh, lm, zs, rho, yw), 0, bound)
             h_t, dh_t = sensor((xs + _total(zs * trial, 1))[None], c)
             c_t = cost(trial[None], h_t)[0]
             better = c_t < c_u
@@ -640,7 +667,7 @@ def analysis(forecast, y_sites, prec_sites, observe, plan: TransformPlan,
                 c_null = 0.5 * quad(al, be, gram) * (kappa ** 2 + s * (1.0 - kappa) ** 2)
             for _ in range(config.iterations):
                 resid = _total(zsr * (dh_b * rho * (yw - h_b))[:, :, None], 1)   # (B, K, Q)
-                trial = uw - (uw + s * d0 - resid) * inv_den
+                trial = _within(uw - (uw + s * d0 - resid) * inv_den, 1, bound)
                 h_t, dh_t = sensor(xs + _total(zsr * trial[:, None], 2), c)
                 d1 = trial - w
                 c_t = (0.5 * _total(trial * trial + s * d1 * d1, 1)

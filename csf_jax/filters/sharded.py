@@ -379,15 +379,16 @@ def _check_arrays(obs, ensemble, model: StateSpaceModel, name: str = NAME) -> No
 
 
 def check_mesh_model(model: StateSpaceModel, config, config_type: type, mesh, name: str,
-                     one_device: str) -> None:
+                     one_device: str, adaptive: bool = False) -> None:
     """What the sharded filters filter (module docstring): a time-invariant model with i.i.d.
     additive observation noise, a ``config_type`` config, a mesh with a ``"sites"`` axis;
-    ``one_device`` names the filter for the rest."""
+    ``one_device`` names the filter for the rest; ``adaptive``: whether the filter shards the
+    EnKF-N's inflation (``config.adaptive``)."""
     check_model(model, name)
     if not isinstance(config, config_type):
         raise TypeError(f"{name}: config must be a csf_jax.{config_type.__name__}, got "
                         f"{type(config).__name__}")
-    if config.adaptive or getattr(config, "radii", ()):
+    if (config.adaptive and not adaptive) or getattr(config, "radii", ()):
         raise ValueError(f"{name}: config.adaptive and config.radii (the EnKF-N's inflation, the "
                          f"radius chosen online: both from the whole step's innovation) are not "
                          f"sharded; leave them off or use {one_device}")

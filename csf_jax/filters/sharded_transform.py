@@ -4,12 +4,14 @@ The d sites of the ring are cut into P contiguous blocks of ``b = d / P`` sites,
 along the mesh axis ``"sites"`` (one host's devices, or several hosts' under
 ``jax.distributed.initialize``); the ensemble ``(N, d)`` lives as ``PartitionSpec(None,
 "sites")``. Each filter step, inside one jitted ``lax.scan``: propagate and inflate (GSPMD, as
-``csf_jax.filters.sharded``), then ``local_transform.analysis`` with the mesh as its ``Ring``: the
-per-site work of each class of sites (windows, Levenberg-Marquardt steps, eigendecompositions,
-the level steps) runs on each device's own block under ``jax.shard_map``, with the window halos
-and the sensor states' overlaps exchanged with the ring neighbours (``ppermute``), and the sensor
-``model.observe`` runs on the full-length states as a global computation (GSPMD). The per-site
-arithmetic is ``local_transform_filter``'s, so the results equal it to float round-off.
+``csf_jax.filters.sharded``; the EnKF-N's factor of ``config.adaptive`` from all the sites'
+innovations as one global computation), then ``local_transform.analysis`` with the mesh as its
+``Ring``: the per-site work of each class of sites (windows, Levenberg-Marquardt steps,
+eigendecompositions, the level steps) runs on each device's own block under ``jax.shard_map``,
+with the window halos and the sensor states' overlaps exchanged with the ring neighbours
+(``ppermute``), and the sensor ``model.observe`` runs on the full-length states as a global
+computation (GSPMD). The per-site arithmetic is ``local_transform_filter``'s, so the results
+equal it to float round-off.
 
 What it filters (anything else is a ValueError at the boundary): the ring of
 ``ring_localization(d, sites)``; a time-invariant point sensor (observation j a function of site
@@ -35,7 +37,7 @@ from jax.sharding import PartitionSpec as P
 
 from csf_jax import _checks
 from csf_jax.filters.driver import Kernel, Method, run
-from csf_jax.filters.letkf import Localization, require_localization
+from csf_jax.filters.letkf import Localization, enkf_n_inflation, require_localization
 from csf_jax.filters.local_transform import (
     AXIS,
     CHUNK,
@@ -72,10 +74,12 @@ NAME = "sharded_transform_filter"
 @functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4, 5))
 def _scan(model: StateSpaceModel, plan, mesh: Mesh, config: LocalTransformConfig, obs_info,
           return_ensembles: bool, inflation, y_sites, prec_sites, ensemble, key, index,
-          has) -> FilterResult:
+          has, obs=None) -> FilterResult:
     """The filter over ``y_sites (K, M, d)`` (each site's observations, NaN: none or missing)
     from ``ensemble (N, d)``, with ``prec_sites (M, d)`` their inverse variances; the key stream
-    of ``csf_jax.local_transform_filter`` (``split(key, K)``)."""
+    of ``csf_jax.local_transform_filter`` (``split(key, K)``). ``obs (K, m)``: the observations in
+    their own order, for the EnKF-N's inflation (``config.adaptive``), computed over all the
+    sites as one global computation."""
     dtype = ensemble.dtype
     state = _state_sharding(mesh, 2)
     ring = Ring(mesh, plan.devices)
@@ -83,14 +87,19 @@ def _scan(model: StateSpaceModel, plan, mesh: Mesh, config: LocalTransformConfig
                              lambda x: jax.lax.with_sharding_constraint(x, _state_sharding(mesh, 4)))
 
     def body(ens, xs):
-        y, key_k = xs
+        y, y_obs, key_k = xs
         forecast = sharded_forecast(model, key_k, ens, inflation, state)
+        if config.adaptive:
+            center = forecast.mean(0)
+            scale = enkf_n_inflation(forecast, y_obs, model, config.adaptive)
+            forecast = jax.lax.with_sharding_constraint(center + scale * (forecast - center),
+                                                        state)
         post = jax.lax.with_sharding_constraint(
             analysis(forecast, y, prec_sites, observe, plan, config, ring), state)
         return post, (post.mean(0), post.std(0, ddof=1), post if return_ensembles else None)
 
     keys = jax.random.split(key, y_sites.shape[0])
-    _, (mean, std, ensembles) = jax.lax.scan(body, ensemble, (y_sites, keys))
+    _, (mean, std, ensembles) = jax.lax.scan(body, ensemble, (y_sites, obs, keys))
     result = mark_nonfinite(FilterResult(mean=mean, std=std, ensembles=ensembles),
                             y_sites.reshape(y_sites.shape[0], -1))
     return result._replace(finite=jax.lax.with_sharding_constraint(
@@ -148,7 +157,7 @@ def _run_method(method, obs, ensemble, *, model, key, inputs=None, return_ensemb
     localization, config, mesh, chunk, obs, ensemble = concrete_inputs(NAME, method, obs,
                                                                        ensemble, key, inputs)
     check_mesh_model(model, config, LocalTransformConfig, mesh, NAME,
-                     "csf_jax.local_transform_filter")
+                     "csf_jax.local_transform_filter", adaptive=True)
     info = site_obs(check_ring(model, localization, NAME), model.dim)
     plan = transform_plan(model.dim, float(config.radius), devices=int(mesh.shape[AXIS]),
                           slots=info.slots, chunk=chunk, one_by_one=_shares_a_cpu_pool(mesh),
@@ -175,7 +184,7 @@ def _run_method(method, obs, ensemble, *, model, key, inputs=None, return_ensemb
                    bool(return_ensembles), jnp.asarray(config.inflation),
                    _place(y_sites, _state_sharding(mesh, 3), dtype),
                    _place(prec_sites, sites, dtype), _place(ensemble, sites, dtype), key, index,
-                   has)
+                   has, _place(obs, NamedSharding(mesh, P()), dtype) if config.adaptive else None)
     if check_finite:
         raise_if_diverged(NAME, result)
     return result
