@@ -48,6 +48,7 @@ from csf_jax.filters.letkf import (
     LETKFConfig,
     Localization,
     _model_sensor_sites,
+    enkf_n_inflation,
     require_localization,
 )
 from csf_jax.filters.result import FilterResult, mark_nonfinite
@@ -491,14 +492,19 @@ def _run_method(method, obs, ensemble, *, model, key, inputs=None, return_ensemb
     return result
 
 
-def sharded_forecast(model: StateSpaceModel, key, ensemble, inflation, sharding):
+def sharded_forecast(model: StateSpaceModel, key, ensemble, inflation, sharding, y=None,
+                     adaptive: float = 0.0):
     """The propagated ``ensemble (N, d)`` kept on the sites' ``sharding``, its anomalies scaled by
-    ``inflation`` (traced)."""
+    ``inflation`` (traced) and, with ``adaptive > 0``, by the EnKF-N's factor for ``y (m,)``
+    (``letkf.enkf_n_inflation``, one global computation over the sites)."""
     dtype = ensemble.dtype
     forecast = jax.lax.with_sharding_constraint(propagate(model, key, ensemble).astype(dtype),
                                                 sharding)
     center = forecast.mean(0)
-    return center + inflation.astype(dtype) * (forecast - center)
+    scale = inflation.astype(dtype)
+    if adaptive > 0:
+        scale = scale * enkf_n_inflation(center + scale * (forecast - center), y, model, adaptive)
+    return jax.lax.with_sharding_constraint(center + scale * (forecast - center), sharding)
 
 
 def require_host_obs(name: str, obs) -> None:

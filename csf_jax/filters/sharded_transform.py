@@ -37,7 +37,7 @@ from jax.sharding import PartitionSpec as P
 
 from csf_jax import _checks
 from csf_jax.filters.driver import Kernel, Method, run
-from csf_jax.filters.letkf import Localization, enkf_n_inflation, require_localization
+from csf_jax.filters.letkf import Localization, require_localization
 from csf_jax.filters.local_transform import (
     AXIS,
     CHUNK,
@@ -88,12 +88,7 @@ def _scan(model: StateSpaceModel, plan, mesh: Mesh, config: LocalTransformConfig
 
     def body(ens, xs):
         y, y_obs, key_k = xs
-        forecast = sharded_forecast(model, key_k, ens, inflation, state)
-        if config.adaptive:
-            center = forecast.mean(0)
-            scale = enkf_n_inflation(forecast, y_obs, model, config.adaptive)
-            forecast = jax.lax.with_sharding_constraint(center + scale * (forecast - center),
-                                                        state)
+        forecast = sharded_forecast(model, key_k, ens, inflation, state, y_obs, config.adaptive)
         post = jax.lax.with_sharding_constraint(
             analysis(forecast, y, prec_sites, observe, plan, config, ring), state)
         return post, (post.mean(0), post.std(0, ddof=1), post if return_ensembles else None)
