@@ -47,6 +47,9 @@ CANDIDATES = {
     "mixture+kernel": _mixture(particle_ess=0.0),
     # both: the default
     "CSF": csf_jax.CSFConfig(),
+    # the default with shock members only where a jump is the more probable reading
+    # (``MixtureConfig.shock_gate``)
+    "gated": _mixture(shock_gate=0.5),
     # the default with the ensemble component's members drawn afresh by the reverse-diffusion
     # sampler instead of transported (``MixtureConfig.ensemble_draws``)
     "sampler": _mixture(ensemble_draws="sampler"),

@@ -171,6 +171,27 @@ def test_shock_component_takes_over_after_a_jump():
     assert float(quiet.shock_weight) < 0.01
 
 
+def test_shock_gate_drops_an_improbable_jump_and_keeps_a_probable_one():
+    """An observation 3 spreads out: without the gate the shock components take a few members
+    (about 4% of the weight); the gate (0.5) gives them none. A jump far outside the ensemble's
+    reach passes the gate."""
+    model = csf_jax.problems.get("cubic10_indep", dim=3)
+    key = jax.random.key(0)
+    centers = 0.1 * jax.random.normal(key, (200, 3))
+    prior_ens = centers + 0.1 * jax.random.normal(jax.random.key(1), (200, 3))
+    cov = jnp.cov(prior_ens.T)
+
+    def shock_members(y, gate):
+        sel = mixture.select(model, MixtureConfig(shock_gate=gate), key, jnp.full((3,), y),
+                             centers, prior_ens, cov, 0.0, 2.0, 1.0)
+        return int(jnp.sum(sel.kind > 1)), float(sel.shock_weight)
+
+    members, weight = shock_members(0.3, 0.0)
+    assert members >= 3 and 0.01 < weight < 0.5
+    assert shock_members(0.3, 0.5) == (0, 0.0)
+    assert shock_members(8.0, 0.5)[0] == 200
+
+
 def test_seen_directions():
     """An elementwise sensor of sites 0 and 2 of 4: ``diag(1, 0, 1, 0)``; a missing entry drops its
     site; a dense linear row gives its unit vector's outer product; a gradient that vanishes at
@@ -244,7 +265,8 @@ def test_bad_mixture_config_is_refused():
                 dict(particle_kernel=-0.1),
                 dict(particle_kernel=float("nan")), dict(ensemble_draws="fresh"),
                 dict(transport_levels=-1), dict(transport_levels=True),
-                dict(transport_levels=2.0), dict(transport_iterations=0)):
+                dict(transport_levels=2.0), dict(transport_iterations=0),
+                dict(shock_gate=1.0), dict(shock_gate=-0.1), dict(shock_gate=float("nan"))):
         with pytest.raises(ValueError, match="MixtureConfig"):
             MixtureConfig(**bad)
     with pytest.raises(TypeError, match="mixture"):
