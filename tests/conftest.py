@@ -30,6 +30,20 @@ TORCH_PROCESS = "CSF_TORCH_PROCESS"  # set in the process that runs the PyTorch 
 MATMUL_ATOL = 1e-6 if jax.default_backend() == "cpu" else 2e-3
 
 
+# The tests the default run leaves to ``-m slow`` (``slow_tests.txt``, written by ``slow_list.py``)
+SLOW_TESTS = frozenset(
+    line.strip() for line in open(os.path.join(os.path.dirname(__file__), "slow_tests.txt"))
+    if line.strip() and not line.startswith("#"))
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    """Mark the tests listed in ``slow_tests.txt`` slow, before ``-m`` selects."""
+    for item in items:
+        if item.nodeid in SLOW_TESTS:
+            item.add_marker(pytest.mark.slow)
+
+
 def pytest_ignore_collect(collection_path, config):
     """The PyTorch tests only in their own process (module docstring)."""
     if collection_path.name == "test_torch_equivalence.py":
