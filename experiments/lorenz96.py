@@ -212,13 +212,20 @@ def page(record: dict) -> list:
                              "lost", "error of kept runs", "s / step"], body))
 
 
-def main(argv=None):
-    p = harness.parser("lorenz96", "The transform CSF against the LETKF and EnSF on Lorenz-96 "
-                       "(tuned on separate runs; cached, resumable); write results.json and the "
-                       "generated block of the Lorenz-96 page.")
-    harness.add_names(p, "--setups", SETUPS, what="setup")
+def parser(module: str, description: str, setups):
+    """A Lorenz-96 job's command line: ``--setups`` (names of ``setups``), ``--runs`` (10), the
+    cache and the outputs (results/lorenz96, docs/lorenz96.md)."""
+    p = harness.parser(module, description)
+    harness.add_names(p, "--setups", setups, what="setup")
     harness.add_sizes(p, runs=10)
     harness.add_outputs(p, "results/lorenz96", "docs/lorenz96.md")
+    return p
+
+
+def main(argv=None):
+    p = parser("lorenz96", "The transform CSF against the LETKF and EnSF on Lorenz-96 (tuned on "
+               "separate runs; cached, resumable); write results.json and the generated block of "
+               "the Lorenz-96 page.", SETUPS)
     p.add_argument("--study", choices=["adaptive"], default=None,
                    help="instead of the setups, the adaptive-inflation study (ADAPTIVE_RUNS; its "
                         "own block and results_adaptive.json)")

@@ -10,8 +10,8 @@ import pytest
 
 from experiments import harness
 
-JOBS = ("run", "table", "zoo", "defaults", "small_ensembles", "lorenz96", "lorenz96_scaling", "train", "bench",
-        "tutorial")
+JOBS = ("run", "table", "zoo", "defaults", "small_ensembles", "lorenz96", "lorenz96_scaling",
+        "lorenz96_robustness", "train", "bench", "tutorial")
 
 # measurement prose: timings, sizes, speed-ups and quoted errors
 MEASUREMENT = re.compile(
@@ -56,6 +56,7 @@ CASES = [
     ("bench", ["--worker", "not json"], "--worker", "not a worker spec"),
     ("bench", ["--dims", "0"], "--dims", ">= 1"),
     ("lorenz96_scaling", ["--dims", "3"], "--dims", ">= 40"),
+    ("lorenz96_robustness", ["--setups", "identity"], "--setups", "ensf_calm"),
 ]
 
 

@@ -142,3 +142,30 @@ def test_csf_with_a_rank_deficient_ensemble_stays_finite():
         result = csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(seed),
                                 config=config)
         assert float(csf_jax.metrics.rmse_per_dim(result.mean, truth[1:])) < 1.4, seed
+
+
+def test_the_robustness_block_and_figure_count_the_runs_caught(tmp_path):
+    """``experiments.lorenz96_robustness`` renders a results record: a row's runs caught are its
+    runs less its lost ones, in the spread table and in the settings table."""
+    pytest.importorskip("matplotlib")
+    from experiments import harness
+    from experiments import lorenz96_robustness as rb
+
+    def row(setup, entry, sweep, spread, lost):
+        return ({"setup": setup, "entry": entry, "sweep": sweep, "spread": spread, "runs": 10,
+                 "lost": lost, "error_kept": 0.05 if lost < 10 else None}
+                | rb._settings(entry if sweep == "settings" else ""))
+
+    rows = [row(s, e, "spread", v, lost) for s in ("ensf_calm", "ensf")
+            for lost, e in enumerate(("LETKF, defaults", "transform CSF, defaults", "EnSF"))
+            for v in rb.SPREADS]
+    rows += [row(s, e.label, "settings", None, 3) for s in ("ensf_calm", "ensf")
+             for e in rb.setting_entries()]
+    record = harness.results_record("lorenz96_robustness", "python -m x", rows, lost_above=1.0)
+    text = "\n".join(rb.page(record))
+    assert "| EnSF | 8/10 (0.05) | 8/10 (0.05) | 8/10 (0.05) | 8/10 (0.05) |" in text
+    assert ("| with jumps | transform CSF, defaults | EnKF-N | 7/10 (0.05) | 7/10 (0.05) | "
+            "7/10 (0.05) | 7/10 (0.05) | 7/10 (0.05) |") in text
+    assert "| without jumps | LETKF | 1.4 | 7/10 (0.05) | 7/10 (0.05) | 7/10 (0.05) | - |" in text
+    rb.figure(record, tmp_path / "f.png")
+    assert (tmp_path / "f.png").stat().st_size > 10_000
