@@ -46,13 +46,20 @@ def default_entries() -> list:
                              batch=1)])
 
 
+def setting_grid() -> list:
+    """``(label, method, radius, inflation)`` of the settings sweep: both local filters at every
+    point of ``ENSF_GRID``, and the transform CSF's defaults at each radius of ``RADII``
+    (inflation None: the EnKF-N's)."""
+    return ([(f"{name}: {r:g} / {i:g}", method, r, i) for name, method in FILTERS.items()
+             for r, i in ENSF_GRID]
+            + [(f"transform CSF, defaults: {r:g}", "local_transform", r, None) for r in RADII])
+
+
 def setting_entries() -> list:
-    """The grid of fixed settings for both local filters, and the transform CSF's defaults at
-    each radius of ``RADII``; each label carries its settings after a colon."""
-    grid = [harness.Entry(f"{name}: {r:g} / {i:g}", method, _local(method, r, i), batch=1)
-            for name, method in FILTERS.items() for r, i in ENSF_GRID]
-    return grid + [harness.Entry(f"transform CSF, defaults: {r:g}", "local_transform",
-                                 _defaults_at(r), batch=1) for r in RADII]
+    """The entries of ``setting_grid``."""
+    return [harness.Entry(label, method,
+                          _local(method, r, i) if i is not None else _defaults_at(r), batch=1)
+            for label, method, r, i in setting_grid()]
 
 
 def _defaults_at(radius: float):
@@ -72,15 +79,18 @@ def caught(row: dict) -> int:
 
 
 def rows(setups, runs: int, cache, progress) -> list:
-    """Every row of both sweeps, each with ``sweep`` ("spread" or "settings") and ``spread``."""
+    """Every row of both sweeps, each with ``sweep`` ("spread" or "settings"), ``spread``, and
+    the settings sweep's ``radius`` and ``inflation`` (None elsewhere)."""
+    settings = {label: {"radius": r, "inflation": i} for label, _, r, i in setting_grid()}
+    none = {"radius": None, "inflation": None}
     out = []
     for name in setups:
         base = dataclasses.replace(SETUPS[name][0], runs=runs, seed=SEED)
         for s in SPREADS:
             case = dataclasses.replace(base, start="standard", spread=s)
-            out += [r | {"sweep": "spread", "spread": s}
+            out += [r | {"sweep": "spread", "spread": s} | none
                     for r in entry_rows(name, case, default_entries(), cache, progress)]
-        out += [r | {"sweep": "settings", "spread": None}
+        out += [r | {"sweep": "settings", "spread": None} | settings[r["entry"]]
                 for r in entry_rows(name, base, setting_entries(), cache, progress)]
     return out
 
@@ -151,11 +161,11 @@ def figure(record: dict, path: pathlib.Path) -> None:
         ax_row[0].set_ylabel(f"{ROBUST_SETUPS[s]}: runs caught")
         for ax, name in zip(ax_row[1:], FILTERS):
             for i in sorted({i for _, i in ENSF_GRID}):
-                pts = [(r["tuned_radius"], caught(r)) for r in mine
-                       if r["entry"].startswith(f"{name}: ") and r["tuned_inflation"] == i]
+                pts = [(r["radius"], caught(r)) for r in mine
+                       if r["entry"].startswith(f"{name}: ") and r["inflation"] == i]
                 ax.plot(*zip(*sorted(pts)), marker="o", label=f"inflation {i:g}")
             if name == "transform CSF":
-                pts = [(r["tuned_radius"], caught(r)) for r in mine
+                pts = [(r["radius"], caught(r)) for r in mine
                        if r["entry"].startswith("transform CSF, defaults: ")]
                 ax.plot(*zip(*sorted(pts)), marker="s", color="k", lw=2, label="defaults")
             ax.set_xlabel(f"{name}: radius")
@@ -169,23 +179,12 @@ def figure(record: dict, path: pathlib.Path) -> None:
     plt.close(fig)
 
 
-def _settings(label: str) -> dict:
-    """The radius and inflation a settings row's label names (None where it has none)."""
-    if ": " not in label:
-        return {"tuned_radius": None, "tuned_inflation": None}
-    values = label.split(": ")[1].split(" / ")
-    return {"tuned_radius": float(values[0]),
-            "tuned_inflation": float(values[1]) if len(values) > 1 else None}
-
-
 def main(argv=None):
     p = parser("lorenz96_robustness", "How often the Lorenz-96 filters catch the truth, against "
                "the starting spread and the radius and inflation (cached, resumable); write "
                "results_robustness.json, the page's block and figure.", ROBUST_SETUPS)
     args = p.parse_args(argv)
-    found = [r | _settings(r["entry"]) for r in rows(args.setups, args.runs,
-                                                       harness.Cache(args.cache),
-                                                       not args.no_progress)]
+    found = rows(args.setups, args.runs, harness.Cache(args.cache), not args.no_progress)
     record = harness.results_record("lorenz96_robustness",
                                     harness.command("lorenz96_robustness", argv), found,
                                     lost_above=LOST)

@@ -151,10 +151,12 @@ def test_the_robustness_block_and_figure_count_the_runs_caught(tmp_path):
     from experiments import harness
     from experiments import lorenz96_robustness as rb
 
+    grid = {label: {"radius": r, "inflation": i} for label, _, r, i in rb.setting_grid()}
+
     def row(setup, entry, sweep, spread, lost):
         return ({"setup": setup, "entry": entry, "sweep": sweep, "spread": spread, "runs": 10,
                  "lost": lost, "error_kept": 0.05 if lost < 10 else None}
-                | rb._settings(entry if sweep == "settings" else ""))
+                | grid.get(entry, {"radius": None, "inflation": None}))
 
     rows = [row(s, e, "spread", v, lost) for s in ("ensf_calm", "ensf")
             for lost, e in enumerate(("LETKF, defaults", "transform CSF, defaults", "EnSF"))
