@@ -22,6 +22,8 @@ Entry points:
     geometry ``ring_localization`` / ``Localization``.
   ``csf_jax.ensf``: the ensemble score filter (EnSF; training-free Monte-Carlo score, damped
     likelihood), a baseline; ``ENSFConfig``.
+  ``csf_jax.ienks``: the local iterative ensemble Kalman smoother with a lag of one step
+    (Gauss-Newton, localised as the LETKF), the local filters' iterative baseline; ``IEnKSConfig``.
   ``csf_jax.sharded_letkf``: the LETKF with its sites split over the devices of a mesh (several
     GPUs or hosts; docs/scale_out.md); ``csf_jax.sharded_transform_filter`` the same for the
     transform-form local CSF; ``site_mesh`` makes the mesh, ``gather_result`` brings a result's
@@ -44,6 +46,7 @@ from csf_jax.filters import (
                              CSFConfig,
                              ENSFConfig,
                              FilterResult,
+                             IEnKSConfig,
                              LETKFConfig,
                              LocalCSFConfig,
                              Localization,
@@ -52,6 +55,7 @@ from csf_jax.filters import (
                              SFConfig,
                              ensemble_kalman_filter,
                              ensf,
+                             ienks,
                              kalman_filter,
                              letkf,
                              local_filter,
@@ -115,7 +119,7 @@ __all__ = ["CSFConfig", "FilterResult", "GuidanceConfig", "Likelihood", "Mixture
            "learned_prior", "load_pretrained", "log_likelihood", "metrics", "particle_filter", "problems",
            "propagate", "reference_filter", "rmse", "score_filter", "shock_steps", "simulate",
            "sharded_letkf", "sharded_transform_filter", "site_mesh", "gather_result", "ensf",
-           "ENSFConfig",
+           "ENSFConfig", "ienks", "IEnKSConfig",
            "local_transform_filter", "LocalTransformConfig", "CovarianceConfig", "Method", "run",
            "methods", "SamplerConfig", "InflationConfig", "PriorConfig"]
 

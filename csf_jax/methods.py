@@ -17,6 +17,7 @@ from csf_jax.filters.csf import method as csf
 from csf_jax.filters.driver import Method, run
 from csf_jax.filters.enkf import method as enkf
 from csf_jax.filters.ensf import method as ensf
+from csf_jax.filters.ienks import method as ienks
 from csf_jax.filters.kalman import method as kalman
 from csf_jax.filters.letkf import method as letkf
 from csf_jax.filters.local_csf import method as local_csf
@@ -29,7 +30,7 @@ from csf_jax.filters.sharded_transform import method as sharded_transform
 
 REGISTRY = {"csf": csf, "enkf": enkf, "pf": pf, "letkf": letkf, "sharded_letkf": sharded_letkf,
             "local_csf": local_csf, "local_transform": local_transform, "ensf": ensf, "sf": sf,
-            "reference": reference, "kalman": kalman,
+            "reference": reference, "kalman": kalman, "ienks": ienks,
             "sharded_transform": sharded_transform}
 
 
@@ -46,5 +47,5 @@ def build(name: str, **settings) -> Method:
     return builder(**settings)
 
 
-__all__ = ["Method", "REGISTRY", "build", "csf", "enkf", "ensf", "kalman", "letkf", "local_csf",
+__all__ = ["Method", "REGISTRY", "build", "csf", "enkf", "ensf", "ienks", "kalman", "letkf", "local_csf",
            "local_transform", "pf", "reference", "run", "sf", "sharded_letkf", "sharded_transform"]

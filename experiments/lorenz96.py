@@ -1,4 +1,5 @@
-"""Lorenz-96: the local CSF in transform form against the LETKF and EnSF, tuned on runs of their own.
+"""Lorenz-96: the local CSF in transform form against the LETKF, EnSF and the local iterative
+smoother, tuned on runs of their own.
 
     python -m experiments.lorenz96 [--setups identity,arctan,ensf,ensf_calm] [--runs 10]
         [--out results/lorenz96] [--page docs/lorenz96.md]
@@ -18,6 +19,10 @@ d = 40, where with a linear sensor it is the LETKF), the transform CSF with its 
 EnSF's setup. A run's error is the time average of the RMSE over sites after the burn-in (200
 steps on d = 40; analyses 101-150 on EnSF's setup); a run is lost when that exceeds ``LOST`` or
 the filter diverged. Every run is a cached cell of ``experiments.harness``.
+
+``--study ienks``: the local iterative ensemble Kalman smoother with a lag of one step
+(``csf_jax.ienks``, the iterative baseline) on EnSF's setup without and with jumps, at its
+defaults and tuned on the same grid and tuning runs, on the same test runs.
 """
 
 from __future__ import annotations
@@ -43,6 +48,8 @@ SETUPS = {  # name: (test cases, d = 40 grid or EnSF grid)
 D40_GRID = [(r, i) for r in (2.0, 4.0, 8.0, 15.0) for i in (1.01, 1.02, 1.05, 1.1)]
 ENSF_GRID = [(r, i) for r in (1.0, 2.0, 4.0, 8.0) for i in (1.05, 1.1, 1.2, 1.4)]
 LOST = 1.0
+CONFIGS = {"letkf": csf_jax.LETKFConfig, "local_transform": csf_jax.LocalTransformConfig,
+           "ienks": csf_jax.IEnKSConfig}
 TUNE_RUNS, TUNE_FIRST = 2, 100
 
 
@@ -54,7 +61,7 @@ def _local(method: str, radius: float | None = None, inflation: float | None = N
     def settings(case, model):
         loc = csf_jax.ring_localization(model.dim, obs_sites(problems.config(
             case.problem, **dict(case.settings))))
-        config = csf_jax.LETKFConfig() if method == "letkf" else csf_jax.LocalTransformConfig()
+        config = CONFIGS[method]()
         if radius is not None:
             config = dataclasses.replace(config, radius=radius, inflation=inflation,
                                          adaptive=0.0)
@@ -193,6 +200,36 @@ def adaptive_page(record: dict) -> list:
                             body))
 
 
+# The local iterative smoother (``--study ienks``): its defaults (radius 4, inflation 1.05), the
+# EnKF-N's inflation in place of the fixed one, and the grid point its own tuning runs pick, on
+# the test runs of EnSF's setup.
+IENKS_SETUPS = ("ensf_calm", "ensf")
+
+
+def ienks_rows(cache, progress, runs: int) -> list:
+    """The rows of the local iterative smoother's study (``IENKS_SETUPS``)."""
+    rows = []
+    for name in IENKS_SETUPS:
+        case = dataclasses.replace(SETUPS[name][0], runs=runs)
+        (r, i), scores = tune(case, "ienks", ENSF_GRID, cache, progress)
+        entries = [harness.Entry("IEnKS", "ienks", _local("ienks", r, i), batch=1),
+                   harness.Entry("IEnKS, defaults", "ienks", _local("ienks"), batch=1),
+                   harness.Entry("IEnKS, EnKF-N 2", "ienks", _local("ienks", 4.0, 1.0,
+                                                                   adaptive=2.0), batch=1)]
+        for row in entry_rows(name, case, entries, cache, progress):
+            row["tuned"] = ({"radius": r, "inflation": i, "grid_scores": scores}
+                            if row["entry"] == "IEnKS" else None)
+            rows.append(row)
+    return rows
+
+
+def ienks_page(record: dict) -> list:
+    """The generated block of the local iterative smoother's study."""
+    head, *rest = page(record)
+    return [head + " \"IEnKS, defaults\": `IEnKSConfig()` (radius 4, inflation 1.05); "
+            "\"EnKF-N 2\": radius 4, `adaptive=2`, `inflation=1`."] + rest
+
+
 def page(record: dict) -> list:
     """The generated block of the Lorenz-96 page."""
     m = record["machine"]
@@ -226,15 +263,21 @@ def main(argv=None):
     p = parser("lorenz96", "The transform CSF against the LETKF and EnSF on Lorenz-96 (tuned on "
                "separate runs; cached, resumable); write results.json and the generated block of "
                "the Lorenz-96 page.", SETUPS)
-    p.add_argument("--study", choices=["adaptive"], default=None,
-                   help="instead of the setups, the adaptive-inflation study (ADAPTIVE_RUNS; its "
-                        "own block and results_adaptive.json)")
+    p.add_argument("--study", choices=["adaptive", "ienks"], default=None,
+                   help="instead of the setups, the adaptive-inflation study (ADAPTIVE_RUNS) or "
+                        "the local iterative smoother's (IENKS_SETUPS), each with its own block "
+                        "and results_<study>.json")
     args = p.parse_args(argv)
     cache, rows = harness.Cache(args.cache), []
     if args.study == "adaptive":
         record = harness.results_record("lorenz96", harness.command("lorenz96", argv),
                                         adaptive_rows(cache, not args.no_progress))
         harness.publish(args, record, adaptive_page(record), "results_adaptive.json", "adaptive")
+        return
+    if args.study == "ienks":
+        record = harness.results_record("lorenz96", harness.command("lorenz96", argv),
+                                        ienks_rows(cache, not args.no_progress, args.runs))
+        harness.publish(args, record, ienks_page(record), "results_ienks.json", "ienks")
         return
     for name in args.setups:
         cases = [dataclasses.replace(c, runs=args.runs) for c in SETUPS[name]]

@@ -171,3 +171,23 @@ def test_the_robustness_block_and_figure_count_the_runs_caught(tmp_path):
     assert "| without jumps | LETKF | 1.4 | 7/10 (0.05) | 7/10 (0.05) | 7/10 (0.05) | - |" in text
     rb.figure(record, tmp_path / "f.png")
     assert (tmp_path / "f.png").stat().st_size > 10_000
+
+
+def test_the_smoother_block_shows_its_tuned_setting_and_lost_runs():
+    """``experiments.lorenz96 --study ienks`` renders a results record: the tuned row carries the
+    grid point its tuning runs picked, the others none; lost runs out of the runs made."""
+    from experiments import harness
+    from experiments import lorenz96 as l96
+
+    def row(setup, entry, tuned, lost):
+        return {"setup": setup, "entry": entry, "case": {"particles": 20, "start": "model"},
+                "tuned": tuned, "error": 0.5 + lost, "lost": lost, "runs": 10,
+                "error_kept": 0.04 if lost < 10 else None, "seconds_per_step": 0.012}
+
+    rows = [row("ensf_calm", "IEnKS", {"radius": 8.0, "inflation": 1.1}, 0),
+            row("ensf", "IEnKS, EnKF-N 2", None, 10)]
+    record = harness.results_record("lorenz96", "python -m x", rows)
+    text = "\n".join(l96.ienks_page(record))
+    assert "`IEnKSConfig()` (radius 4, inflation 1.05)" in text
+    assert "| ensf_calm | 20 | model | IEnKS | 8 / 1.1 | 0.5 | 0/10 | 0.04 | 0.012 |" in text
+    assert "| ensf | 20 | model | IEnKS, EnKF-N 2 | - | 10.5 | 10/10 | - | 0.012 |" in text

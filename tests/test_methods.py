@@ -40,6 +40,7 @@ SETTINGS = {  # name: (model, builder settings)
     "sharded_transform": (RING, {"localization": LOC,
                                  "config": csf_jax.LocalTransformConfig(radius=2.0)}),
     "ensf": (LINEAR, {"config": csf_jax.ENSFConfig(reverse_steps=5)}),
+    "ienks": (RING, {"localization": LOC, "config": csf_jax.IEnKSConfig(adaptive=2.0)}),
     "sf": (LINEAR, {"config": csf_jax.SFConfig(train_steps=2, warmup_steps=2),
                     "sampler": FAST_CSF}),
     "reference": (problems.get("double_well", num_steps=4),

@@ -3,6 +3,7 @@
 from csf_jax.filters.csf import CSFConfig, csf_filter, posterior_sample
 from csf_jax.filters.enkf import ensemble_kalman_filter
 from csf_jax.filters.ensf import ENSFConfig, ensf
+from csf_jax.filters.ienks import IEnKSConfig, ienks
 from csf_jax.filters.kalman import kalman_filter
 from csf_jax.filters.letkf import LETKFConfig, Localization, letkf, ring_localization
 from csf_jax.filters.local_csf import LocalCSFConfig, local_filter
@@ -13,7 +14,7 @@ from csf_jax.filters.result import FilterResult
 from csf_jax.filters.sf import SFConfig, score_filter
 
 __all__ = ["CSFConfig", "FilterResult", "LETKFConfig", "Localization", "csf_filter",
-           "ensemble_kalman_filter", "ENSFConfig", "ensf", "kalman_filter", "letkf", "LocalCSFConfig", "local_filter",
+           "ensemble_kalman_filter", "ENSFConfig", "ensf", "IEnKSConfig", "ienks", "kalman_filter", "letkf", "LocalCSFConfig", "local_filter",
            "LocalTransformConfig", "local_transform_filter",
            "ring_localization",
            "particle_filter", "posterior_sample", "ReferenceConfig", "reference_filter",
