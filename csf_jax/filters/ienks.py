@@ -138,11 +138,13 @@ def _site_trial(w, grad, hess, lm):
 
 
 def smoother_analysis(ensemble, y, model: StateSpaceModel, index, weight, obs_site, inflation,
-                      adaptive: float = 0.0, iterations: int = 10, tol: float = 1.0):
+                      adaptive: float = IEnKSConfig.adaptive,
+                      iterations: int = IEnKSConfig.iterations, tol: float = IEnKSConfig.tol):
     """The lag-1 smoother's analysis at the next time: ``ensemble (N, d)`` the analysis of the
     previous step, ``y (m,)`` the next observations (NaN: missing), ``index, weight (d, W)`` from
     ``local_obs``, ``obs_site (m,)`` the state site each observation sits at (``nearest_sites``),
-    ``inflation`` a traced scalar. Returns ``(analysis (N, d), iterations run)``."""
+    ``inflation`` a traced scalar; the rest as ``IEnKSConfig``'s fields (its defaults). Returns
+    ``(analysis (N, d), iterations run)``."""
     n, d = ensemble.shape
     dtype = ensemble.dtype
     drift = jax.vmap(model.drift)
