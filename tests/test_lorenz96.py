@@ -163,31 +163,35 @@ def test_the_robustness_block_and_figure_count_the_runs_caught(tmp_path):
             for v in rb.SPREADS]
     rows += [row(s, e.label, "settings", None, 3) for s in ("ensf_calm", "ensf")
              for e in rb.setting_entries()]
-    record = harness.results_record("lorenz96_robustness", "python -m x", rows, lost_above=1.0)
+    record = harness.results_record("lorenz96_robustness", "python -m x", rows, lost_above=1.0,
+                                    floor=1.5)
     text = "\n".join(rb.page(record))
+    assert "an error at most 1.0 or at most 1.5 times the least error" in text
     assert "| EnSF | 8/10 (0.05) | 8/10 (0.05) | 8/10 (0.05) | 8/10 (0.05) |" in text
     assert ("| with jumps | transform CSF, defaults | EnKF-N | 7/10 (0.05) | 7/10 (0.05) | "
-            "7/10 (0.05) | 7/10 (0.05) | 7/10 (0.05) |") in text
+            "7/10 (0.05) | 7/10 (0.05) | 7/10 (0.05) | 7/10 (0.05) |") in text
     assert "| without jumps | LETKF | 1.4 | 7/10 (0.05) | 7/10 (0.05) | 7/10 (0.05) | - |" in text
     rb.figure(record, tmp_path / "f.png")
     assert (tmp_path / "f.png").stat().st_size > 10_000
 
 
-def test_the_smoother_block_shows_its_tuned_setting_and_lost_runs():
-    """``experiments.lorenz96 --study ienks`` renders a results record: the tuned row carries the
-    grid point its tuning runs picked, the others none; lost runs out of the runs made."""
-    from experiments import harness
+def test_a_run_is_lost_against_the_floor_of_the_starts_at_the_truth():
+    """``experiments.lorenz96.lost_runs``: a run is lost when it diverged or its error exceeds
+    both ``LOST`` and ``FLOOR`` times the least error of the rows started at the truth on that
+    run (same N); without such rows, ``LOST`` alone; the kept error is over the other runs."""
     from experiments import lorenz96 as l96
 
-    def row(setup, entry, tuned, lost):
-        return {"setup": setup, "entry": entry, "case": {"particles": 20, "start": "model"},
-                "tuned": tuned, "error": 0.5 + lost, "lost": lost, "runs": 10,
-                "error_kept": 0.04 if lost < 10 else None, "seconds_per_step": 0.012}
+    def row(start, errors, n=20):
+        return {"case": {"start": start, "particles": n}, "window_rmse_per_run": errors}
 
-    rows = [row("ensf_calm", "IEnKS", {"radius": 8.0, "inflation": 1.1}, 0),
-            row("ensf", "IEnKS, EnKF-N 2", None, 10)]
-    record = harness.results_record("lorenz96", "python -m x", rows)
-    text = "\n".join(l96.ienks_page(record))
-    assert "`IEnKSConfig()` (radius 4, inflation 1.05)" in text
-    assert "| ensf_calm | 20 | model | IEnKS | 8 / 1.1 | 0.5 | 0/10 | 0.04 | 0.012 |" in text
-    assert "| ensf | 20 | model | IEnKS, EnKF-N 2 | - | 10.5 | 10/10 | - | 0.012 |" in text
+    rows = [row("model", [0.5, 1.2, 2.0, float("inf")]),
+            row("truth", [0.4, 1.0, 1.0, 0.5]),
+            row("truth", [0.45, 0.9, 1.1, 0.6]),
+            row("model", [0.5, 1.2, 2.0, 0.3], n=40)]
+    got = l96.lost_runs(rows)
+    # floors 0.4, 0.9, 1.0, 0.5: bounds 1.0, 1.35, 1.5, 1.0
+    assert [r["lost"] for r in got] == [2, 0, 0, 2]
+    assert got[0]["error_kept"] == pytest.approx(0.85)
+    assert got[3]["error_kept"] == pytest.approx(0.4)
+    assert rows[0].get("lost") is None                      # the input rows stay as they were
+

@@ -327,6 +327,21 @@ def test_probe_errors_are_one_line(small):
                                   config=conf).mean)(obs)
 
 
+def test_one_device_transform_switches_radius_as_local_transform(small):
+    """With a far radius (``LocalTransformConfig.far_radius``) the sharded transform CSF takes
+    the same radius in each step as ``local_transform_filter``: a narrow ensemble 3 off the
+    truth gives steps at both radii."""
+    model, loc, _, obs, ens = small
+    ens = 0.1 * (ens - ens.mean(0)) + ens.mean(0) + 3.0
+    config = csf_jax.LocalTransformConfig(radius=4.0, far_radius=2.0, reverse_steps=4)
+    kw = dict(model=model, key=jax.random.key(2), localization=loc, config=config,
+              return_ensembles=True)
+    got = gather_result(sharded_transform_filter(obs, ens, mesh=site_mesh(), **kw))
+    ref = csf_jax.local_transform_filter(obs, ens, **kw)
+    assert set(np.asarray(ref.info["radius"]).tolist()) == {2.0, 4.0}
+    _assert_same(got._asdict(), ref._asdict(), "one device, two radii")
+
+
 def test_one_device_transform_equals_local_transform(small):
     model, loc, _, obs, ens = small
     kw = dict(model=model, key=jax.random.key(2), localization=loc,

@@ -383,14 +383,16 @@ class LETKFStatic(NamedTuple):
 def inflated_forecast(model: StateSpaceModel, key, ensemble, inflation, y=None,
                       adaptive: float = 0.0):
     """The propagated ``ensemble (N, d)`` with its anomalies scaled by ``inflation`` (traced),
-    and with ``adaptive > 0`` by the EnKF-N's factor for ``y (m,)`` (``enkf_n_inflation``)."""
+    and with ``adaptive > 0`` by the EnKF-N's factor for ``y (m,)`` (``enkf_n_inflation``).
+    Returns ``(forecast (N, d), factor ())``, the EnKF-N's factor (1 with ``adaptive`` 0)."""
     forecast = propagate(model, key, ensemble).astype(ensemble.dtype)
     center = forecast.mean(0)
     scale = inflation.astype(ensemble.dtype)
+    factor = jnp.ones((), ensemble.dtype)
     if adaptive > 0:
-        inflated = center + scale * (forecast - center)
-        scale = scale * enkf_n_inflation(inflated, y, model, adaptive)
-    return center + scale * (forecast - center)
+        factor = enkf_n_inflation(center + scale * (forecast - center), y, model, adaptive)
+        scale = scale * factor
+    return center + scale * (forecast - center), factor
 
 
 #: the adaptive inflation's largest factor in one step (``enkf_n_inflation``)
@@ -457,7 +459,7 @@ def _step(model: StateSpaceModel, static: LETKFStatic, inflation, state, y, key,
     """Forecast, inflate and analyse every site of the ensemble ``(N, d)`` on ``y (m,)``; with
     candidate radii, at the one ``choose_radius`` picks."""
     ensemble = state[0] if static.radii else state
-    forecast = inflated_forecast(model, key, ensemble, inflation, y, static.adaptive)
+    forecast, _ = inflated_forecast(model, key, ensemble, inflation, y, static.adaptive)
 
     def at(radius):
         index, weight = local_obs(static.localization, radius)

@@ -97,8 +97,8 @@ class LocalTransformConfig:
 
     Attributes:
       radius: Gaspari-Cohn half-width of the R-localisation, in sites (support ``2 radius``; 1.82x
-        DAPPER's ``loc_rad``), as ``LETKFConfig.radius``. The default 6 lost no run on the
-        Lorenz-96 page's tuning runs at N = 10 to 40 (docs/lorenz96.md).
+        DAPPER's ``loc_rad``), as ``LETKFConfig.radius``, in a step whose forecast agrees with
+        the observations (``far_radius`` below).
       inflation: multiplicative factor on the forecast anomalies, as ``LETKFConfig.inflation``.
       top_iterations: Gauss-Newton steps to the local posterior's mode (1 is the LETKF's analysis
         linearised at the forecast mean; a saturating sensor such as arctan needs several).
@@ -117,9 +117,18 @@ class LocalTransformConfig:
         flat sensor asks for a move of hundreds of forecast spreads, which the sample covariance
         would carry to the neighbouring sites; bounded, the filter follows the jump over several
         steps as the inflation widens the ensemble. 0: no bound.
+      far_radius, far_factor: the half-width of a step whose EnKF-N factor (``adaptive``) exceeds
+        ``far_factor``: a forecast that has not caught the truth (a far start, a jump of the
+        truth), whose long-range sample correlations carry wrong corrections to distant sites.
+        The defaults (radius 15, and 6 beyond a factor of 1.5) keep the larger radius's accuracy
+        once the truth is caught and the smaller one's hold while it is not (measured on
+        docs/lorenz96.md). ``far_radius`` 0 or at least ``radius``, or ``adaptive`` 0:
+        ``radius`` in every step (``switches``). Every step runs one analysis on ``radius``'s
+        window; a far step weights it with ``far_radius``'s taper (zero beyond its support), so
+        the cost is the same in every step and under ``jax.vmap`` over runs.
     """
 
-    radius: float = 6.0
+    radius: float = 15.0
     inflation: float = 1.0
     top_iterations: int = 5
     iterations: int = 1
@@ -128,10 +137,16 @@ class LocalTransformConfig:
     sigma_max: float = 25.0
     adaptive: float = 2.0
     trust: float = 6.0
+    far_radius: float = 6.0
+    far_factor: float = 1.5
 
     def __post_init__(self):
-        _checks.check_fields(self, positive=("radius", "inflation"), nonnegative=("trust",))
+        _checks.check_fields(self, positive=("radius", "inflation"),
+                             nonnegative=("trust", "far_radius"))
         check_adaptive(self)
+        if not self.far_factor >= 1.0:
+            raise ValueError(f"LocalTransformConfig.far_factor must be >= 1 (an EnKF-N factor), "
+                             f"got {self.far_factor}")
         for name in ("top_iterations", "iterations", "reverse_steps"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -296,6 +311,14 @@ def transform_plan(dim: int, radius: float, *, devices: int = 1, slots: int = 1,
                          bool(one_by_one))
 
 
+def window_taper(plan: TransformPlan, radius: float) -> np.ndarray:
+    """``(span,)`` the Gaspari-Cohn weight at radius ``radius`` of the plan's window offsets
+    ``-left .. right``: ``plan.taper`` at the plan's own radius, and zero beyond ``2 radius``
+    (a narrower radius analysed on a wider window)."""
+    offsets = np.abs(np.arange(-plan.left, plan.right + 1, dtype=np.float64))
+    return gaspari_cohn(offsets / radius)
+
+
 def member_group(plan: TransformPlan, n: int) -> int:
     """B, the members moved at once for an ensemble of ``n``."""
     if plan.members is not None:
@@ -362,12 +385,12 @@ def _strided(x, start, count: int, stride: int):
     return out[..., 0]
 
 
-def class_window(z, mean, rho_site, yw_site, c, *, plan: TransformPlan, ring: Ring):
+def class_window(z, mean, rho_site, yw_site, c, taper, *, plan: TransformPlan, ring: Ring):
     """The windows of class ``c``'s sites of the block. From ``z (N, b)`` (the scaled
     anomalies), ``mean (b,)``, ``rho_site, yw_site (M, b)`` (inverse variance, 0 where none or
-    missing; the observation, 0 there): ``zs (E, N, Q)``, ``xs (E, Q)``, ``rho (E, Q)``
-    (tapered) and ``yw (E, Q)`` of the ``Q = b / C`` sites ``q C + c``; entry
-    ``e = (o + left) M + slot`` of offset ``o``."""
+    missing; the observation, 0 there) and ``taper (span,)`` (the weight of each offset):
+    ``zs (E, N, Q)``, ``xs (E, Q)``, ``rho (E, Q)`` (tapered) and ``yw (E, Q)`` of the
+    ``Q = b / C`` sites ``q C + c``; entry ``e = (o + left) M + slot`` of offset ``o``."""
     n, b = z.shape
     m, q = plan.slots, b // plan.classes
     packed = jnp.concatenate([z, mean[None], rho_site, yw_site], axis=0)
@@ -376,8 +399,7 @@ def class_window(z, mean, rho_site, yw_site, c, *, plan: TransformPlan, ring: Ri
     shape = (plan.span, m)
     zs = jnp.broadcast_to(win[:, None, :n], shape + (n, q)).reshape(plan.entries, n, q)
     xs = jnp.broadcast_to(win[:, None, n], shape + (q,)).reshape(plan.entries, q)
-    taper = jnp.asarray(plan.taper, z.dtype)[:, None, None]
-    rho = (taper * win[:, n + 1:n + 1 + m]).reshape(plan.entries, q)
+    rho = (taper.astype(z.dtype)[:, None, None] * win[:, n + 1:n + 1 + m]).reshape(plan.entries, q)
     return zs, xs, rho, win[:, n + 1 + m:].reshape(plan.entries, q)
 
 
@@ -580,13 +602,14 @@ def _levels(config: LocalTransformConfig):
 
 
 def analysis(forecast, y_sites, prec_sites, observe, plan: TransformPlan,
-             config: LocalTransformConfig, ring: Ring = Ring()):
+             config: LocalTransformConfig, ring: Ring = Ring(), taper=None):
     """The transform-form analysis of ``forecast (N, d)`` (module docstring).
 
     y_sites: ``(M, d)`` each site's observations (NaN: none or missing).  prec_sites: ``(M, d)``
     their inverse variances.  observe: ``sites_observer``'s function.  plan, ring: how the work is
-    cut and where the block sits. Arrays of a class keep their Q sites last, so the per-site
-    steps are elementwise over them. Returns the posterior ensemble ``(N, d)``.
+    cut and where the block sits.  taper: ``(span,)`` the weight of each window offset, traced
+    (default ``plan.taper``; ``step_taper``). Arrays of a class keep their Q sites last, so the
+    per-site steps are elementwise over them. Returns the posterior ensemble ``(N, d)``.
     """
     n, d = forecast.shape
     dtype = forecast.dtype
@@ -598,8 +621,9 @@ def analysis(forecast, y_sites, prec_sites, observe, plan: TransformPlan,
     mask = observed(y_sites)
     rho_site = jnp.where(mask, prec_sites, 0.0).astype(dtype)
     yw_site = jnp.where(mask, y_sites, 0.0).astype(dtype)
+    taper = jnp.asarray(plan.taper if taper is None else taper, dtype)
     window = on_sites(ring, functools.partial(class_window, plan=plan, ring=ring),
-                      (1, 0, 1, 1, None), (2, 1, 1, 1))
+                      (1, 0, 1, 1, None, None), (2, 1, 1, 1))
     pack = on_sites(ring, functools.partial(pack_states, plan=plan, ring=ring), (2, None), 3)
     unpack = on_sites(ring, functools.partial(unpack_states, plan=plan, ring=ring), (3, None), 2)
     trial_of = on_sites(ring, functools.partial(lm_trial, plan=plan), (1, 1, 1, 0, 2, 1, 1), 1)
@@ -616,7 +640,7 @@ def analysis(forecast, y_sites, prec_sites, observe, plan: TransformPlan,
         return both[:count], both[count:]
 
     def one_class(c):
-        zs, xs, rho, yw = window(z, mean, rho_site, yw_site, c)
+        zs, xs, rho, yw = window(z, mean, rho_site, yw_site, c, taper)
         q = zs.shape[-1]
 
         def cost(u, h):
@@ -630,7 +654,7 @@ def analysis(forecast, y_sites, prec_sites, observe, plan: TransformPlan,
             step is exact and final)."""
             u, h, dh, c_u, lm = carry
             trial = _within(trial_of(u, h, dh, lm, zs, rho, yw), 0, bound)
-            h_t, dh_t = sensor((xs + _total(zs * trial, 1))[None], c)
+            h_t, dh_t = sensor((xs + jnp.einsum("enq,nq->eq", zs, trial))[None], c)
             c_t = cost(trial[None], h_t)[0]
             better = c_t < c_u
             return (jnp.where(better, trial, u), jnp.where(better, h_t[0], h),
@@ -666,9 +690,9 @@ def analysis(forecast, y_sites, prec_sites, observe, plan: TransformPlan,
                 c_b = c_b + 0.5 * (quad(ga, de, gram) + s * quad(ga - al, de - be, gram))
                 c_null = 0.5 * quad(al, be, gram) * (kappa ** 2 + s * (1.0 - kappa) ** 2)
             for _ in range(config.iterations):
-                resid = _total(zsr * (dh_b * rho * (yw - h_b))[:, :, None], 1)   # (B, K, Q)
+                resid = jnp.einsum("ekq,beq->bkq", zsr, dh_b * rho * (yw - h_b))  # (B, K, Q)
                 trial = _within(uw - (uw + s * d0 - resid) * inv_den, 1, bound)
-                h_t, dh_t = sensor(xs + _total(zsr * trial[:, None], 2), c)
+                h_t, dh_t = sensor(xs + jnp.einsum("ekq,bkq->beq", zsr, trial), c)
                 d1 = trial - w
                 c_t = (0.5 * _total(trial * trial + s * d1 * d1, 1)
                        + 0.5 * _total(rho * (yw - h_t) ** 2, 1))
@@ -729,10 +753,11 @@ def analysis(forecast, y_sites, prec_sites, observe, plan: TransformPlan,
 
 def transform_analysis(forecast, y, model: StateSpaceModel, localization: Localization,
                        config: LocalTransformConfig, *, chunk: int = CHUNK,
-                       plan: TransformPlan | None = None):
+                       plan: TransformPlan | None = None, taper=None):
     """The one-device analysis of ``forecast (N, d)`` on ``y (m,)`` (NaN: missing) for a point
     sensor at ``localization.obs`` (``ring_localization``). ``plan``: how to cut the work
-    (default ``transform_plan(d, radius, chunk=chunk)``). Returns the posterior ``(N, d)``."""
+    (default ``transform_plan(d, radius, chunk=chunk)``); ``taper``: as ``analysis``'s. Returns
+    the posterior ``(N, d)``."""
     obs = localization_obs(localization)
     d = forecast.shape[1]
     if plan is None:
@@ -747,7 +772,7 @@ def transform_analysis(forecast, y, model: StateSpaceModel, localization: Locali
         y_sites = jnp.where(has, y[index], jnp.nan)
         prec_sites = jnp.where(has, prec[index], 0.0)
     return analysis(forecast, y_sites.astype(dtype), prec_sites, sites_observer(model, obs, dtype),
-                    plan, config)
+                    plan, config, taper=taper)
 
 
 # --- the filter --------------------------------------------------------------------------------
@@ -761,12 +786,39 @@ class TransformStatic(NamedTuple):
     chunk: int = CHUNK
 
 
+def switches(config: LocalTransformConfig) -> bool:
+    """Whether ``config`` analyses some steps at ``far_radius`` (``LocalTransformConfig``)."""
+    return config.adaptive > 0 and 0 < config.far_radius < config.radius
+
+
+def step_taper(plan: TransformPlan, config: LocalTransformConfig, factor):
+    """The step's ``(span,)`` window taper and ``(far, radius)`` (scalars): ``far_radius``'s
+    taper on ``plan``'s window where the EnKF-N ``factor`` exceeds ``far_factor`` (and
+    ``switches``), else ``plan.taper``. One analysis on one window either way: a ``lax.cond``
+    between two windows would run both under ``jax.vmap``."""
+    wide = jnp.asarray(plan.taper)
+    if not switches(config):
+        return wide, None
+    far = factor > config.far_factor
+    taper = jnp.where(far, jnp.asarray(window_taper(plan, config.far_radius)), wide)
+    return taper, jnp.where(far, config.far_radius, config.radius)
+
+
 def _step(model: StateSpaceModel, static: TransformStatic, inflation, ensemble, y, key, time):
-    """Forecast, inflate and analyse every site of ``ensemble (N, d)`` on ``y (m,)``."""
-    forecast = inflated_forecast(model, key, ensemble, inflation, y, static.config.adaptive)
-    post = transform_analysis(forecast, y, model, static.localization, static.config,
-                              chunk=static.chunk)
-    return post, StepOutput(post.mean(0), post.std(0, ddof=1), post)
+    """Forecast, inflate and analyse every site of ``ensemble (N, d)`` on ``y (m,)``; where
+    ``switches``, at ``far_radius`` in a step whose EnKF-N factor exceeds ``far_factor``
+    (``info["radius"]``: the step's radius)."""
+    config = static.config
+    forecast, factor = inflated_forecast(model, key, ensemble, inflation, y, config.adaptive)
+    plan = transform_plan(model.dim, float(config.radius),
+                          slots=localization_obs(static.localization).slots, chunk=static.chunk)
+    taper, radius = step_taper(plan, config, factor)
+    post = transform_analysis(forecast, y, model, static.localization, config,
+                              plan=plan, taper=taper)
+    if radius is None:
+        return post, StepOutput(post.mean(0), post.std(0, ddof=1), post)
+    info = {"radius": radius.astype(forecast.dtype)}
+    return post, StepOutput(post.mean(0), post.std(0, ddof=1), post, info)
 
 
 def _check(model: StateSpaceModel, static: TransformStatic) -> None:

@@ -322,7 +322,7 @@ def _scan(model: StateSpaceModel, plan: SitePlan, mesh: Mesh, return_ensembles: 
 
     def body(ens, xs):
         y, key_k = xs
-        forecast = sharded_forecast(model, key_k, ens, inflation, state)
+        forecast, _ = sharded_forecast(model, key_k, ens, inflation, state)
         hx = jax.vmap(model.observe)(forecast).astype(dtype)
         if slot_index is not None:
             hx = jnp.where(slot_has, hx[:, slot_index], 0.0)
@@ -496,15 +496,19 @@ def sharded_forecast(model: StateSpaceModel, key, ensemble, inflation, sharding,
                      adaptive: float = 0.0):
     """The propagated ``ensemble (N, d)`` kept on the sites' ``sharding``, its anomalies scaled by
     ``inflation`` (traced) and, with ``adaptive > 0``, by the EnKF-N's factor for ``y (m,)``
-    (``letkf.enkf_n_inflation``, one global computation over the sites)."""
+    (``letkf.enkf_n_inflation``, one global computation over the sites). Returns
+    ``(forecast (N, d), factor ())`` as ``letkf.inflated_forecast``."""
     dtype = ensemble.dtype
     forecast = jax.lax.with_sharding_constraint(propagate(model, key, ensemble).astype(dtype),
                                                 sharding)
     center = forecast.mean(0)
     scale = inflation.astype(dtype)
+    factor = jnp.ones((), dtype)
     if adaptive > 0:
-        scale = scale * enkf_n_inflation(center + scale * (forecast - center), y, model, adaptive)
-    return jax.lax.with_sharding_constraint(center + scale * (forecast - center), sharding)
+        factor = enkf_n_inflation(center + scale * (forecast - center), y, model, adaptive)
+        scale = scale * factor
+    return jax.lax.with_sharding_constraint(center + scale * (forecast - center),
+                                            sharding), factor
 
 
 def require_host_obs(name: str, obs) -> None:

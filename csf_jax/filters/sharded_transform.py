@@ -46,6 +46,7 @@ from csf_jax.filters.local_transform import (
     analysis,
     site_obs,
     sites_observer,
+    step_taper,
     transform_plan,
 )
 from csf_jax.filters.result import FilterResult, mark_nonfinite
@@ -72,14 +73,15 @@ NAME = "sharded_transform_filter"
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4, 5))
-def _scan(model: StateSpaceModel, plan, mesh: Mesh, config: LocalTransformConfig, obs_info,
-          return_ensembles: bool, inflation, y_sites, prec_sites, ensemble, key, index,
+def _scan(model: StateSpaceModel, plan, mesh: Mesh, config: LocalTransformConfig,
+          obs_info, return_ensembles: bool, inflation, y_sites, prec_sites, ensemble, key, index,
           has, obs=None) -> FilterResult:
     """The filter over ``y_sites (K, M, d)`` (each site's observations, NaN: none or missing)
     from ``ensemble (N, d)``, with ``prec_sites (M, d)`` their inverse variances; the key stream
     of ``csf_jax.local_transform_filter`` (``split(key, K)``). ``obs (K, m)``: the observations in
     their own order, for the EnKF-N's inflation (``config.adaptive``), computed over all the
-    sites as one global computation."""
+    sites as one global computation. A step whose EnKF-N factor exceeds ``config.far_factor``
+    is analysed at ``config.far_radius`` (``local_transform.step_taper``)."""
     dtype = ensemble.dtype
     state = _state_sharding(mesh, 2)
     ring = Ring(mesh, plan.devices)
@@ -88,9 +90,11 @@ def _scan(model: StateSpaceModel, plan, mesh: Mesh, config: LocalTransformConfig
 
     def body(ens, xs):
         y, y_obs, key_k = xs
-        forecast = sharded_forecast(model, key_k, ens, inflation, state, y_obs, config.adaptive)
-        post = jax.lax.with_sharding_constraint(
-            analysis(forecast, y, prec_sites, observe, plan, config, ring), state)
+        forecast, factor = sharded_forecast(model, key_k, ens, inflation, state, y_obs,
+                                            config.adaptive)
+        taper, _ = step_taper(plan, config, factor)
+        post = analysis(forecast, y, prec_sites, observe, plan, config, ring, taper)
+        post = jax.lax.with_sharding_constraint(post, state)
         return post, (post.mean(0), post.std(0, ddof=1), post if return_ensembles else None)
 
     keys = jax.random.split(key, y_sites.shape[0])
@@ -154,6 +158,7 @@ def _run_method(method, obs, ensemble, *, model, key, inputs=None, return_ensemb
     check_mesh_model(model, config, LocalTransformConfig, mesh, NAME,
                      "csf_jax.local_transform_filter", adaptive=True)
     info = site_obs(check_ring(model, localization, NAME), model.dim)
+
     plan = transform_plan(model.dim, float(config.radius), devices=int(mesh.shape[AXIS]),
                           slots=info.slots, chunk=chunk, one_by_one=_shares_a_cpu_pool(mesh),
                           name=NAME)

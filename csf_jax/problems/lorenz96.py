@@ -159,13 +159,15 @@ def obs_sites(config: Lorenz96Config) -> np.ndarray:
 
 @functools.cache
 def attractor_point(config: Lorenz96Config) -> np.ndarray:
-    """``(d,)`` float32: ``F`` with site 0 raised by 0.01, integrated ``spinup_steps`` steps."""
+    """``(d,)`` float32: ``F`` with site 0 raised by 0.01, integrated ``spinup_steps`` steps
+    (computed at once, also when the model is first built inside a ``jax.jit`` trace)."""
     x = np.full(config.dim, config.forcing, np.float64)
     x[0] += 0.01
     h = config.dt / config.substeps
-    x = jax.jit(lambda x: jax.lax.fori_loop(
-        0, config.spinup_steps * config.substeps, lambda i, x: rk4_step(x, h, config.forcing), x))(
-        jnp.asarray(x, jnp.float32))
+    with jax.ensure_compile_time_eval():
+        x = jax.jit(lambda x: jax.lax.fori_loop(
+            0, config.spinup_steps * config.substeps, lambda i, x: rk4_step(x, h, config.forcing),
+            x))(jnp.asarray(x, jnp.float32))
     out = np.asarray(x, np.float32)
     out.setflags(write=False)
     return out
