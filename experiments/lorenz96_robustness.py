@@ -5,8 +5,9 @@
 
 On EnSF's setup without and with the truth's jumps (``experiments.lorenz96.SETUPS``: d = 100,
 arctan sensor, N = 20), on runs of a seed of their own (``SEED``; neither the table's test runs nor
-its tuning runs), a run *catches the truth* when its time-averaged RMSE over analyses 101-150 is
-at most ``experiments.lorenz96.LOST`` and it did not diverge. Two sweeps:
+its tuning runs), a run *catches the truth* when it did not diverge and its time-averaged RMSE
+over analyses 101-150 is at most ``experiments.lorenz96.LOST`` or at most ``FLOOR`` times the
+least error of the filters' defaults started at the truth on that run (``lost_runs``). Two sweeps:
 
 * the starting spread: the initial ensemble ``N(0, s^2 I)`` for s in ``SPREADS`` (EnSF's own start
   is s = 1; the truth's sites spread about 3.6 on the attractor), each filter at its defaults, as a
@@ -29,11 +30,21 @@ import pathlib
 
 import csf_jax
 from experiments import harness
-from experiments.lorenz96 import ENSF_GRID, LOST, SETUPS, _local, entry_rows, parser
+from experiments.lorenz96 import (
+    ENSF_GRID,
+    FLOOR,
+    LOST,
+    SETUPS,
+    TRUTH_SPREAD,
+    _local,
+    entry_rows,
+    lost_runs,
+    parser,
+)
 
 SEED = 13
 SPREADS = (0.1, 1.0, 4.0)
-RADII = (1.0, 2.0, 4.0, 6.0, 8.0)
+RADII = (1.0, 2.0, 4.0, 6.0, 8.0, 15.0)
 ROBUST_SETUPS = {"ensf_calm": "without jumps", "ensf": "with jumps"}
 FILTERS = {"LETKF": "letkf", "transform CSF": "local_transform"}
 
@@ -57,20 +68,8 @@ def setting_grid() -> list:
 
 def setting_entries() -> list:
     """The entries of ``setting_grid``."""
-    return [harness.Entry(label, method,
-                          _local(method, r, i) if i is not None else _defaults_at(r), batch=1)
+    return [harness.Entry(label, method, _local(method, r, i), batch=1)
             for label, method, r, i in setting_grid()]
-
-
-def _defaults_at(radius: float):
-    """The transform CSF's defaults with another radius."""
-    defaults = _local("local_transform")
-
-    def settings(case, model):
-        found = defaults(case, model)
-        return found | {"config": dataclasses.replace(found["config"], radius=radius)}
-
-    return settings
 
 
 def caught(row: dict) -> int:
@@ -86,12 +85,16 @@ def rows(setups, runs: int, cache, progress) -> list:
     out = []
     for name in setups:
         base = dataclasses.replace(SETUPS[name][0], runs=runs, seed=SEED)
+        truth = dataclasses.replace(base, start="truth", spread=TRUTH_SPREAD)
+        mine = [r | {"sweep": "truth", "spread": TRUTH_SPREAD} | none
+                for r in entry_rows(name, truth, default_entries(), cache, progress)]
         for s in SPREADS:
             case = dataclasses.replace(base, start="standard", spread=s)
-            out += [r | {"sweep": "spread", "spread": s} | none
-                    for r in entry_rows(name, case, default_entries(), cache, progress)]
-        out += [r | {"sweep": "settings", "spread": None} | settings[r["entry"]]
-                for r in entry_rows(name, base, setting_entries(), cache, progress)]
+            mine += [r | {"sweep": "spread", "spread": s} | none
+                     for r in entry_rows(name, case, default_entries(), cache, progress)]
+        mine += [r | {"sweep": "settings", "spread": None} | settings[r["entry"]]
+                 for r in entry_rows(name, base, setting_entries(), cache, progress)]
+        out += lost_runs(mine)
     return out
 
 
@@ -116,15 +119,19 @@ def page(record: dict) -> list:
             for e in labels]
     lines = [f"Made by `{record['command']}` on {record['date']}, {m['cpu']} ({m['cpu_count']} "
              f"cores, jax {m['jax_backend']}). Seed {SEED}, N = 20; runs that caught the truth "
-             f"(error at most {record['lost_above']}, not diverged) of {runs}, and in brackets "
+             f"(not diverged, and an error at most {record['lost_above']} or at most "
+             f"{record['floor']} times the least error of the defaults started at the truth, "
+             f"`x_0 + N(0, {TRUTH_SPREAD:g}^2 I)`, on the same run) of {runs}, and in brackets "
              f"their mean error.", "",
              "Against the starting spread s (`N(0, s^2 I)`), each filter at its defaults:", ""]
     lines += harness.table(["filter", *(f"{ROBUST_SETUPS[s]}, s = {v:g}" for s in setups
                                         for v in SPREADS)], body)
     inflations = sorted({i for _, i in ENSF_GRID})
+    far = csf_jax.LocalTransformConfig()
     lines += ["", "Against the radius (columns) and a fixed inflation (rows), from the setup's "
               "own start; the last rows: the transform CSF's defaults (the EnKF-N's inflation, "
-              "the trust bound) at each radius:", ""]
+              f"the trust bound) at each radius, with radius {far.far_radius:g} in the steps whose "
+              f"EnKF-N factor exceeds {far.far_factor:g} where the radius is larger:", ""]
     body = [[ROBUST_SETUPS[s], name, f"{i:g}",
              *(cell(found.get((s, f"{name}: {r:g} / {i:g}"))) for r in RADII)]
             for s in setups for name in FILTERS for i in inflations]
@@ -187,7 +194,7 @@ def main(argv=None):
     found = rows(args.setups, args.runs, harness.Cache(args.cache), not args.no_progress)
     record = harness.results_record("lorenz96_robustness",
                                     harness.command("lorenz96_robustness", argv), found,
-                                    lost_above=LOST)
+                                    lost_above=LOST, floor=FLOOR)
     harness.publish(args, record, page(record), "results_robustness.json", "robustness")
     if args.page:
         figure(record, pathlib.Path(args.page).with_name("lorenz96_robustness.png"))
