@@ -73,8 +73,8 @@ NAME = "sharded_transform_filter"
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4, 5))
-def _scan(model: StateSpaceModel, plan, mesh: Mesh, config: LocalTransformConfig,
-          obs_info, return_ensembles: bool, inflation, y_sites, prec_sites, ensemble, key, index,
+def _scan(model: StateSpaceModel, plan, mesh: Mesh, config: LocalTransformConfig, obs_info,
+          return_ensembles: bool, inflation, y_sites, prec_sites, ensemble, key, index,
           has, obs=None) -> FilterResult:
     """The filter over ``y_sites (K, M, d)`` (each site's observations, NaN: none or missing)
     from ``ensemble (N, d)``, with ``prec_sites (M, d)`` their inverse variances; the key stream
