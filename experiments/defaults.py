@@ -62,8 +62,9 @@ GROUPS = ("table", "zoo", "moderate")
 
 
 def entry(label: str):
-    """The candidate ``label`` as the zoo calls CSF (``experiments.zoo._csf``)."""
-    return harness.Entry(label, "csf", zoo._csf(CANDIDATES[label]), batch=2)
+    """The candidate ``label`` as the zoo calls CSF (``experiments.zoo._csf``), all runs of a case
+    in one compiled call."""
+    return harness.Entry(label, "csf", zoo._csf(CANDIDATES[label]))
 
 
 def cases(groups, particles: int, seed: int) -> list:
