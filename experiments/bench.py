@@ -43,12 +43,14 @@ import time
 
 import numpy as np
 
-from experiments import harness
+from experiments import cli, harness, interrupt
 
 IMPLS = ("jax", "torch_eager", "torch_compile")
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
 TAG = "@@bench "
 TORCH_MISSING = "PyTorch is not installed: pip install -e '.[bench]'"
+DEFAULTS = {"dims": [1, 10, 20], "particles": [1000], "repeats": 3, "filter_steps": 2}
+QUICK = {"dims": [10], "particles": [256], "repeats": 1, "filter_steps": 1}
 
 
 def config(spec: dict):
@@ -182,9 +184,9 @@ class Worker:
     """A worker subprocess speaking the ``TAG`` JSON-line protocol."""
 
     def __init__(self, spec: dict, env: dict):
-        self.proc = subprocess.Popen([sys.executable, "-m", "experiments.bench", "--worker",
-                                      json.dumps(spec)], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, text=True, env=env)
+        self.proc = interrupt.spawn([sys.executable, "-m", "experiments.bench", "--worker",
+                                     json.dumps(spec)], stdin=subprocess.PIPE,
+                                    stdout=subprocess.PIPE, text=True, env=env)
         self.info = self.read()
 
     def read(self) -> dict:
@@ -202,6 +204,7 @@ class Worker:
         self.proc.stdin.close()
         out = self.read() if self.proc.poll() is None else {}
         self.proc.wait()
+        interrupt.CHILDREN.discard(self.proc)
         return out
 
 
@@ -271,16 +274,19 @@ def main(argv=None):
 
     p = harness.parser("bench", "Time the CSF online step: csf_jax against its PyTorch port, "
                        "eager and compiled, per state dimension and ensemble size.", cache=False)
-    p.add_argument("--dims", type=harness.int_list(1), default=[1, 10, 20],
-                   help="comma-separated state dimensions d (default 1,10,20)")
-    p.add_argument("--particles", type=harness.int_list(2), default=[1000],
-                   help="comma-separated ensemble sizes N (default 1000)")
+    p.add_argument("--dims", type=harness.int_list(1), default=None,
+                   help="comma-separated state dimensions d (default 1,10,20; 10 with --quick)")
+    p.add_argument("--particles", type=harness.int_list(2), default=None,
+                   help="comma-separated ensemble sizes N (default 1000; 256 with --quick)")
     p.add_argument("--guidance", choices=MODES, default="kalman",
                    help="the sampler: kalman (the default's) or a DPS mode (the paper's: clipped "
                         "with --steps 500); default %(default)s")
     p.add_argument("--steps", type=harness.int_at_least(2), default=20,
                    help="reverse steps L (default %(default)s)")
-    harness.add_timing(p, repeats=3, steps=2)
+    p.add_argument("--repeats", type=harness.int_at_least(1), default=None,
+                   help="timed calls per implementation (default 3; 1 with --quick)")
+    p.add_argument("--filter-steps", type=harness.int_at_least(1), default=None,
+                   help="filter steps per timed call (default 2; 1 with --quick)")
     p.add_argument("--impls", type=harness.name_list(IMPLS, "implementation"),
                    default=list(IMPLS), help=f"comma-separated from {','.join(IMPLS)}")
     p.add_argument("--device", choices=("cpu", "cuda"), default=None,
@@ -292,9 +298,12 @@ def main(argv=None):
     p.add_argument("--omp-wait-policy", choices=("passive", "active", "unset"), default="unset",
                    help="OMP_WAIT_POLICY of the torch workers (default %(default)s)")
     harness.add_outputs(p, "results/bench", "docs/benchmark.md")
-    p.add_argument("--quick", action="store_true", help="a smoke test: d = 10, N = 256, 1 repeat")
+    p.add_argument("--quick", action="store_true",
+                   help="a smoke test: d = 10, N = 256, 1 repeat of 1 filter step (the flags "
+                        "given win)")
     p.add_argument("--worker", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
+    cli.fill(args, DEFAULTS, QUICK if args.quick else None)
     if args.worker:
         try:
             spec = json.loads(args.worker)
@@ -311,13 +320,15 @@ def main(argv=None):
         if args.device == "cuda" and found != "cuda":
             p.error("argument --device: torch sees no CUDA GPU; use --device cpu")
         args.device = args.device or found
-    if args.quick:
-        args.dims, args.particles, args.repeats, args.filter_steps = [10], [256], 1, 1
     # JAX allocates GPU memory as it goes, so that PyTorch workers on the same GPU get theirs
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     import jax
 
     import csf_jax
+
+    # a GPU's rows go to blocks of their own, so that a page keeps its CPU rows beside them
+    tag = f"{args.guidance}_L{args.steps}" + ("" if jax.default_backend() == "cpu" else "_gpu")
+    cli.check_outputs(p, args, tag)
 
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -344,10 +355,9 @@ def main(argv=None):
              f"{sampler}; seconds per filter step, the median of "
              f"{args.repeats} timed runs of {args.filter_steps} filter steps; compilation "
              f"apart.", ""] + table(rows)
-    # a GPU's rows go to blocks of their own, so that a page keeps its CPU rows beside them
-    tag = f"{args.guidance}_L{args.steps}" + ("" if jax.default_backend() == "cpu" else "_gpu")
-    harness.publish(args, record, lines, f"results_{tag}.json", tag)
+    with interrupt.WRITING:
+        harness.publish(args, record, lines, f"results_{tag}.json", tag)
 
 
 if __name__ == "__main__":
-    main()
+    interrupt.main(main, "bench")

@@ -26,7 +26,7 @@ import csf_jax
 from csf_jax import PriorConfig
 from csf_jax.mixture import MixtureConfig
 from csf_jax.problems.zoo import MODERATE, ZOO_GAPS
-from experiments import harness, zoo
+from experiments import cells, cli, harness, interrupt, zoo
 
 
 def _mixture(**settings) -> csf_jax.CSFConfig:
@@ -118,7 +118,8 @@ def main(argv=None):
     harness.add_sizes(p, particles=1000, seed=7)
     harness.add_outputs(p, "results/defaults", "docs/defaults.md")
     args = p.parse_args(argv)
-    cache = harness.Cache(args.cache)
+    cli.check_outputs(p, args, f"N{args.particles}")
+    cache = cells.Cache(args.cache)
     cases_ = cases(args.groups, args.particles, args.seed)
     entries = [entry(c) for c in args.candidates] + CLASSICAL
     results = harness.run(cases_, entries, cache, not args.no_progress)
@@ -131,9 +132,10 @@ def main(argv=None):
             outcome = results[(case, e.label)]
             rows.append(harness.describe(case, e, outcome) | harness.summary(outcome, data))
     record = harness.results_record("defaults", harness.command("defaults", argv), rows)
-    harness.publish(args, record, page(record, args.candidates), f"results_N{args.particles}.json",
-                    f"N{args.particles}")
+    with interrupt.WRITING:
+        harness.publish(args, record, page(record, args.candidates),
+                        f"results_N{args.particles}.json", f"N{args.particles}")
 
 
 if __name__ == "__main__":
-    main()
+    interrupt.main(main, "defaults", interrupt.CACHED)

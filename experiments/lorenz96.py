@@ -37,7 +37,7 @@ import numpy as np
 import csf_jax
 from csf_jax import problems
 from csf_jax.problems.lorenz96 import obs_sites
-from experiments import harness
+from experiments import cells, cli, harness, interrupt
 
 D40 = (("num_steps", 1000), ("burn_in", 200))
 TRUTH_SPREAD = 0.1  # a start at the truth: x_0 + N(0, TRUTH_SPREAD^2 I)
@@ -280,18 +280,22 @@ def main(argv=None):
                    help="instead of the setups, the adaptive-inflation study (ADAPTIVE_RUNS), "
                         "with its own block and results_adaptive.json")
     args = p.parse_args(argv)
-    cache, rows = harness.Cache(args.cache), []
+    cli.check_outputs(p, args, args.study)
+    cache, rows = cells.Cache(args.cache), []
     if args.study == "adaptive":
         record = harness.results_record("lorenz96", harness.command("lorenz96", argv),
                                         adaptive_rows(cache, not args.no_progress))
-        harness.publish(args, record, adaptive_page(record), "results_adaptive.json", "adaptive")
+        with interrupt.WRITING:
+            harness.publish(args, record, adaptive_page(record), "results_adaptive.json",
+                            "adaptive")
         return
     for name in args.setups:
         cases = [dataclasses.replace(c, runs=args.runs) for c in SETUPS[name]]
         rows += setup_rows(name, cases, cache, not args.no_progress, harness.extra_entries(args))
     record = harness.results_record("lorenz96", harness.command("lorenz96", argv), rows)
-    harness.publish(args, record, page(record))
+    with interrupt.WRITING:
+        harness.publish(args, record, page(record))
 
 
 if __name__ == "__main__":
-    main()
+    interrupt.main(main, "lorenz96", interrupt.CACHED)

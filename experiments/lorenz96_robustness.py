@@ -29,7 +29,7 @@ import dataclasses
 import pathlib
 
 import csf_jax
-from experiments import harness
+from experiments import cells, cli, harness, interrupt
 from experiments.lorenz96 import (
     ENSF_GRID,
     FLOOR,
@@ -191,14 +191,16 @@ def main(argv=None):
                "the starting spread and the radius and inflation (cached, resumable); write "
                "results_robustness.json, the page's block and figure.", ROBUST_SETUPS)
     args = p.parse_args(argv)
-    found = rows(args.setups, args.runs, harness.Cache(args.cache), not args.no_progress)
+    cli.check_outputs(p, args, "robustness")
+    found = rows(args.setups, args.runs, cells.Cache(args.cache), not args.no_progress)
     record = harness.results_record("lorenz96_robustness",
                                     harness.command("lorenz96_robustness", argv), found,
                                     lost_above=LOST, floor=FLOOR)
-    harness.publish(args, record, page(record), "results_robustness.json", "robustness")
+    with interrupt.WRITING:
+        harness.publish(args, record, page(record), "results_robustness.json", "robustness")
     if args.page:
         figure(record, pathlib.Path(args.page).with_name("lorenz96_robustness.png"))
 
 
 if __name__ == "__main__":
-    main()
+    interrupt.main(main, "lorenz96_robustness", interrupt.CACHED)

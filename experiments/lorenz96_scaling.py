@@ -22,11 +22,10 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import sys
 import time
 
-from experiments import harness
+from experiments import cli, harness, interrupt
 from experiments.bench import where
 
 
@@ -95,18 +94,24 @@ def main(argv=None) -> None:
     p.add_argument("--members", type=harness.int_at_least(2), default=20,
                    help="ensemble size N (default %(default)s)")
     harness.add_timing(p, repeats=2, steps=3)
-    p.add_argument("--radius", type=float, default=1.0, help="localisation radius (default 1)")
-    p.add_argument("--inflation", type=float, default=1.4, help="inflation (default 1.4)")
+    p.add_argument("--radius", type=cli.positive_float, default=1.0,
+                   help="localisation radius, > 0 (default 1)")
+    p.add_argument("--inflation", type=cli.positive_float, default=1.4,
+                   help="inflation, > 0 (default 1.4)")
     harness.add_outputs(p, "results/lorenz96", "docs/lorenz96.md")
     args = p.parse_args(argv)
+    import jax
+
+    gpu = jax.default_backend() != "cpu"
+    cli.check_outputs(p, args, "scaling_gpu" if gpu else "scaling")
     rows = []
     for dim in args.dims:
         for name in ("sharded_letkf", "transform"):
             code = (f"import json; from experiments.lorenz96_scaling import measure; print(json."
                     f"dumps(measure({dim}, {name!r}, {args.members}, {args.filter_steps}, "
-                    f"{args.repeats}, {args.radius}, {args.inflation})))")
-            out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                                 env={**os.environ, "MALLOC_MMAP_THRESHOLD_": "131072"})
+                    f"{args.repeats}, {args.radius!r}, {args.inflation!r})))")
+            out = interrupt.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                env={**os.environ, "MALLOC_MMAP_THRESHOLD_": "131072"})
             if out.returncode != 0:
                 last = (out.stderr.strip().splitlines() or ["no output"])[-1]
                 raise SystemExit(f"lorenz96_scaling: the worker of d={dim} ({name}) failed: {last}")
@@ -124,10 +129,10 @@ def main(argv=None) -> None:
                              [[r["dim"], r["filter"], f"{r['seconds_per_step']:.3g}",
                                f"{r['first_call_s']:.1f}", f"{r['peak_mib']:.0f}",
                                f"{r['ratio']:.1f}"] for r in rows]))
-    gpu = m["jax_backend"] != "cpu"
-    harness.publish(args, record, lines, "scaling_gpu.json" if gpu else "scaling.json",
-                    "scaling_gpu" if gpu else "scaling")
+    with interrupt.WRITING:
+        harness.publish(args, record, lines, "scaling_gpu.json" if gpu else "scaling.json",
+                        "scaling_gpu" if gpu else "scaling")
 
 
 if __name__ == "__main__":
-    main()
+    interrupt.main(main, "lorenz96_scaling")

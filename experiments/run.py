@@ -31,7 +31,7 @@ import numpy as np
 import csf_jax
 from csf_jax import PAPER, CSFConfig, SFConfig, problems
 from csf_jax.filters.csf import PRESETS
-from experiments import harness
+from experiments import cells, cli, harness, interrupt
 
 RUNS, PARTICLES = 10, 1000  # the table's setting
 QUICK = dict(runs=2, particles=100, num_steps=10)
@@ -163,34 +163,41 @@ def main(argv=None):
     p.add_argument("--methods", type=harness.name_list(LABELS, "filter"), default=LABELS,
                    help=f"comma-separated filters from {','.join(LABELS)} (default: all)")
     add_preset(p)
-    harness.add_sizes(p, runs=RUNS, particles=PARTICLES, seed=0)
+    p.add_argument("--runs", type=harness.int_at_least(1), default=None,
+                   help=f"independent runs (default {RUNS}; {QUICK['runs']} with --quick)")
+    p.add_argument("--particles", type=harness.int_at_least(2), default=None,
+                   help=f"ensemble size N (default {PARTICLES}; {QUICK['particles']} with "
+                        f"--quick)")
+    harness.add_sizes(p, seed=0)
     p.add_argument("--sf-runs", type=harness.int_at_least(1), default=None,
                    help="run SF on the first R runs only (default: all on a GPU, 1 on a CPU)")
     p.add_argument("--out", default=None, help="folder for results.json and the figures")
     p.add_argument("--quick", action="store_true",
                    help=f"a first look: {QUICK['runs']} runs, N = {QUICK['particles']}, "
-                        f"{QUICK['num_steps']} filter steps, a smaller reference")
+                        f"{QUICK['num_steps']} filter steps, a smaller reference (--runs and "
+                        f"--particles, if given, win)")
     args = p.parse_args(argv)
     quick = QUICK if args.quick else {}
-    runs = quick.get("runs", RUNS) if args.quick and args.runs == RUNS else args.runs
+    cli.fill(args, {"runs": RUNS, "particles": PARTICLES}, quick)
+    cli.check_outputs(p, args)
+    runs = args.runs
     sf_runs = args.sf_runs or (1 if jax.default_backend() == "cpu" else None)
     if sf_runs is not None and sf_runs > runs:
         p.error(f"argument --sf-runs: {sf_runs} exceeds the {runs} runs (--runs)")
-    case = harness.Case(args.problem, runs=runs, seed=args.seed,
-                        particles=quick.get("particles", PARTICLES) if args.quick and
-                        args.particles == PARTICLES else args.particles,
+    case = harness.Case(args.problem, runs=runs, seed=args.seed, particles=args.particles,
                         settings=(("num_steps", quick["num_steps"]),) if quick else ())
     reference = (csf_jax.ReferenceConfig(particles=2000, shock_draws=256) if quick
                  else csf_jax.ReferenceConfig())
     chosen = [e for e in entries(sf_runs, reference, args.preset) if e.label in args.methods]
     chosen += harness.extra_entries(args)
     cache = args.cache or os.path.join(args.out or tempfile.mkdtemp(prefix="csf_run_"), "cache")
-    results = harness.run([case], chosen, harness.Cache(cache), progress=not args.no_progress)
+    results = harness.run([case], chosen, cells.Cache(cache), progress=not args.no_progress)
     table = rows(results, [case], chosen)
     print_table(table)
     if args.out:
-        harness.write_results(f"{args.out}/results.json", harness.results_record(
-            "run", harness.command("run", argv), table, preset=args.preset))
+        with interrupt.WRITING:
+            harness.write_results(f"{args.out}/results.json", harness.results_record(
+                "run", harness.command("run", argv), table, preset=args.preset))
         figures(args.out, case, results, chosen, args.preset)
     if sf_runs is not None and "SF" in args.methods and sf_runs < runs:
         print(f"SF ran on {sf_runs} of {runs} runs (its online training is the slow part on a "
@@ -201,4 +208,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    interrupt.main(main, "run", interrupt.CACHED)

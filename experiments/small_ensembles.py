@@ -17,7 +17,7 @@ import dataclasses
 
 import csf_jax
 from csf_jax import CovarianceConfig
-from experiments import harness
+from experiments import cells, cli, harness, interrupt
 from experiments import run as main_job
 
 COLUMNS = ["cauchy", "cubic10_indep", "cubic10_corr", "cubic20_indep", "cubic20_corr"]
@@ -59,11 +59,12 @@ def main(argv=None):
     harness.add_sizes(p, runs=3, particles=50, seed=7)
     harness.add_outputs(p, "results/small_ensembles", "docs/small_ensembles.md")
     args = p.parse_args(argv)
+    cli.check_outputs(p, args, f"N{args.particles}")
     cases = [harness.Case(n, runs=args.runs, particles=args.particles, seed=args.seed)
              for n in args.problems]
     chosen = [e for e in ENTRIES if e.label in args.filters or e.label == "Ref."]
     chosen += harness.extra_entries(args)
-    results = harness.run(cases, chosen, harness.Cache(args.cache), not args.no_progress)
+    results = harness.run(cases, chosen, cells.Cache(args.cache), not args.no_progress)
     rows = main_job.rows(results, cases, chosen)
     record = harness.results_record("small_ensembles", harness.command("small_ensembles", argv),
                                     rows)
@@ -75,8 +76,10 @@ def main(argv=None):
               f"cores). RMSE over the reference's on the same {args.runs} runs (seed "
               f"{args.seed}), N = {args.particles}:", ""]
              + harness.table(["filter"] + [c.problem for c in cases], body))
-    harness.publish(args, record, lines, f"results_N{args.particles}.json", f"N{args.particles}")
+    with interrupt.WRITING:
+        harness.publish(args, record, lines, f"results_N{args.particles}.json",
+                        f"N{args.particles}")
 
 
 if __name__ == "__main__":
-    main()
+    interrupt.main(main, "small_ensembles", interrupt.CACHED)

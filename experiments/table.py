@@ -17,7 +17,7 @@ import os
 
 import jax
 
-from experiments import harness
+from experiments import cells, cli, harness, interrupt
 from experiments import run as main_job
 
 COLUMNS = ["double_well", "triple_well", "cauchy", "cubic10_indep", "cubic10_corr",
@@ -109,25 +109,29 @@ def main(argv=None):
     p.add_argument("--readme", default=None,
                    help="a README whose table block is rewritten (the committed one: README.md)")
     args = p.parse_args(argv)
+    cli.check_outputs(p, args)
+    cli.check_page(p, "--readme", args.readme)
     sf_runs = args.sf_runs or (5 if jax.default_backend() == "cpu" else None)
     cases = [harness.Case(name) for name in args.problems]
     chosen = main_job.entries(sf_runs, preset=args.preset) + harness.extra_entries(args)
-    results = harness.run(cases, chosen, harness.Cache(args.cache), not args.no_progress)
+    results = harness.run(cases, chosen, cells.Cache(args.cache), not args.no_progress)
     rows = main_job.rows(results, cases, chosen)
     record = harness.results_record("table", harness.command("table", argv), rows,
                                     preset=args.preset)
     if args.out:
-        harness.write_results(os.path.join(args.out, "results.json"), record)
+        with interrupt.WRITING:
+            harness.write_results(os.path.join(args.out, "results.json"), record)
         for case in cases:
             os.makedirs(os.path.join(args.out, case.problem), exist_ok=True)
             main_job.figures(os.path.join(args.out, case.problem), case, results, chosen,
                              args.preset)
-    if args.page:
-        harness.replace_section(args.page, render(record))
-    if args.readme:
-        harness.replace_section(args.readme, readme_block(record))
+    with interrupt.WRITING:
+        if args.page:
+            harness.replace_section(args.page, render(record))
+        if args.readme:
+            harness.replace_section(args.readme, readme_block(record))
     print(render(record))
 
 
 if __name__ == "__main__":
-    main()
+    interrupt.main(main, "table", interrupt.CACHED)

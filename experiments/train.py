@@ -21,7 +21,7 @@ import jax
 from csf_jax import networks
 from csf_jax.pretrained import DATASETS, MODEL_DIR, NETWORK, TRAIN
 from csf_jax.training import TrainConfig, train_prior
-from experiments import harness
+from experiments import cli, harness, interrupt
 
 
 def main(argv=None):
@@ -35,6 +35,7 @@ def main(argv=None):
                    help="replace the shipped models in csf_jax/pretrained_models")
     p.add_argument("--quiet", action="store_true", help="no training progress")
     args = p.parse_args(argv)
+    cli.check_folder(p, "--out", args.out)
     names = [n for group in args.names for n in group] or list(DATASETS)
     rows = []
     for name in names:
@@ -52,9 +53,11 @@ def main(argv=None):
         if args.export:
             print(f"exported to {trained.save(os.path.join(MODEL_DIR, name))}")
     if args.export:
-        harness.write_results(os.path.join("results", "pretrained", "results.json"),
-                              harness.results_record("train", harness.command("train", argv), rows))
+        with interrupt.WRITING:
+            harness.write_results(os.path.join("results", "pretrained", "results.json"),
+                                  harness.results_record("train", harness.command("train", argv),
+                                                         rows))
 
 
 if __name__ == "__main__":
-    main()
+    interrupt.main(main, "train", "the training checkpoints are kept, rerun to resume")

@@ -18,6 +18,8 @@ import subprocess
 import sys
 import time
 
+from experiments import cli, interrupt
+
 PAGE = pathlib.Path(__file__).resolve().parents[1] / "docs" / "tutorial.md"
 
 
@@ -40,8 +42,8 @@ def run(out: str, page: pathlib.Path = PAGE, extras: bool = False) -> str:
     script.write_text(code(page, extras))
     env = {**os.environ, "MPLBACKEND": "Agg"}
     t0 = time.perf_counter()
-    done = subprocess.run([sys.executable, str(script)], cwd=out_dir, env=env, text=True,
-                          capture_output=True)
+    done = interrupt.run([sys.executable, str(script)], cwd=out_dir, env=env, text=True,
+                         capture_output=True)
     seconds = time.perf_counter() - t0
     if done.returncode != 0:
         raise subprocess.CalledProcessError(done.returncode, done.args, done.stdout,
@@ -69,8 +71,7 @@ def build_parser() -> argparse.ArgumentParser:
 def parse_args(argv=None) -> argparse.Namespace:
     p = build_parser()
     args = p.parse_args(argv)
-    if os.path.exists(args.out) and not os.path.isdir(args.out):
-        p.error(f"argument OUT: {args.out!r} exists and is not a directory")
+    cli.check_folder(p, "OUT", args.out)
     return args
 
 
@@ -82,4 +83,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    interrupt.main(main, "tutorial")

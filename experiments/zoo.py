@@ -23,7 +23,7 @@ import dataclasses
 import csf_jax
 from csf_jax import problems
 from csf_jax.problems.zoo import MODERATE, ZOO_GAPS
-from experiments import harness
+from experiments import cells, cli, harness, interrupt
 
 MODELS = list(problems.ZOO)
 REFERENCE_PARTICLES = 100_000
@@ -114,7 +114,8 @@ def main(argv=None):
     harness.add_sizes(p, runs=10, particles=1000)
     harness.add_outputs(p, "results/zoo", "docs/zoo.md")
     args = p.parse_args(argv)
-    cache = harness.Cache(args.cache)
+    cli.check_outputs(p, args, f"N{args.particles}")
+    cache = cells.Cache(args.cache)
     cases_ = cases(args.models, args.runs, args.particles)
     entries = ENTRIES + harness.extra_entries(args)
     results = harness.run(cases_, entries, cache, not args.no_progress)
@@ -128,9 +129,10 @@ def main(argv=None):
             outcome = found[(c, entry.label)]
             rows.append(harness.describe(c, entry, outcome) | harness.summary(outcome, data))
     record = harness.results_record("zoo", harness.command("zoo", argv), rows)
-    harness.publish(args, record, page(record), f"results_N{args.particles}.json",
-                    f"N{args.particles}")
+    with interrupt.WRITING:
+        harness.publish(args, record, page(record), f"results_N{args.particles}.json",
+                        f"N{args.particles}")
 
 
 if __name__ == "__main__":
-    main()
+    interrupt.main(main, "zoo", interrupt.CACHED)
