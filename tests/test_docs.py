@@ -306,3 +306,139 @@ def test_ruff_is_clean():
     done = subprocess.run([sys.executable, "-m", "ruff", "check", "."], cwd=ROOT,
                           capture_output=True, text=True, check=False)
     assert done.returncode == 0, done.stdout[-3000:]
+
+
+# The pages a new user reads first: no commit hash (a page says which command makes its figures),
+# and code blocks whose lines fit a laptop-width page (1280 px, both sidebars shown: about 76
+# characters) without wrapping.
+USER_PAGES = ("README.md", "docs/index.md", "docs/getting_started.md", "docs/choosing.md",
+              "docs/results.md", "docs/zoo.md", "docs/defaults.md", "docs/small_ensembles.md",
+              "docs/lorenz96.md", "docs/benchmark.md", "docs/tutorial.md", "docs/api.md",
+              "CHANGELOG.md")
+FIRST_PAGES = ("README.md", "docs/index.md", "docs/getting_started.md", "docs/choosing.md")
+CODE_WIDTH = 76
+# The README's two set-up commands, kept as they are (a user copies them whole).
+SETUP = ("python3 -m venv .venv && . .venv/bin/activate && pip install -e '.[plots]' && "
+         "python -m experiments.run double_well --out out/double_well",
+         ". .venv/bin/activate && pip install -e '.[test]' && python -m pytest -q")
+COMMIT = re.compile(r"\b(?=[0-9a-f]*[a-f])(?=[0-9a-f]*[0-9])[0-9a-f]{7,40}\b")
+
+
+def _text(page: str) -> str:
+    with open(os.path.join(ROOT, page), encoding="utf-8") as f:
+        return f.read()
+
+
+def test_user_pages_name_no_commit():
+    hits = [f"{page}:{n}: {line.strip()[:100]}" for page in USER_PAGES
+            for n, line in enumerate(_text(page).splitlines(), 1) if COMMIT.search(line)]
+    assert not hits, "commit hashes on the user pages:\n" + "\n".join(hits)
+
+
+def test_commit_pattern_can_fail():
+    assert COMMIT.search("made at commit 738fda7") and COMMIT.search("cace770:experiments/")
+    assert not COMMIT.search("seed 1000000, 0.0297, lorenz96_abs, deadbeef")
+
+
+def test_first_pages_code_fits_the_page():
+    """The code blocks of the README, the home page, Getting started and the filter-choice page
+    have lines of at most CODE_WIDTH characters, but for the README's set-up commands."""
+    long = []
+    for page in FIRST_PAGES:
+        for block in re.findall(r"^```[a-z]*\n(.*?)^```", _text(page), flags=re.S | re.M):
+            long += [f"{page}: {line}" for line in block.splitlines()
+                     if len(line) > CODE_WIDTH and line not in SETUP]
+    assert not long, f"code lines over {CODE_WIDTH} characters:\n" + "\n".join(long)
+
+
+def test_readme_speaks_to_a_user_first():
+    """The README keeps its two set-up commands as they are, says how long the tests take, comes
+    to its example before its results, and says what "Ref." is before its table uses it."""
+    text = _readme()
+    for command in SETUP:
+        assert f"```bash\n{command}\n```" in text, command
+    assert re.search(r"about \d+ minutes on a 2-core machine, install included", text)
+    assert text.index("## Example") < text.index("## Results")
+    assert '"Ref." is' in text.split("<!-- results:start -->", 1)[0]
+
+
+def test_site_css_keeps_code_whole():
+    """Code blocks wrap instead of hiding their ends behind a scrollbar, and code in a table cell
+    is not broken in the middle of a word."""
+    css = re.sub(r"/\*.*?\*/", "", _text("docs/stylesheets/extra.css"), flags=re.S)
+    rules = {k.strip(): v for k, v in re.findall(r"([^{}]+)\{([^}]*)\}", css)}
+    pre = rules[".md-typeset pre > code"]
+    assert "white-space: pre-wrap" in pre and "overflow-x" not in pre
+    cell = rules[".md-typeset table:not([class]) code"]
+    assert "word-break: keep-all" in cell and "overflow-wrap: normal" in cell
+
+
+def test_raw_outputs_are_linked_not_in_the_nav():
+    """The benchmark history's raw outputs are reached from it, not listed in the navigation (and
+    mkdocs.yml says so, so that the strict build does not warn)."""
+    yaml = pytest.importorskip("yaml")
+    config = yaml.safe_load(_text("mkdocs.yml"))
+    listed = json.dumps(config["nav"])
+    history = _text("docs/bench/history.md")
+    raw = sorted(f for f in os.listdir(os.path.join(ROOT, "docs", "bench"))
+                 if f.startswith("bench_") and f.endswith(".md"))
+    assert raw
+    for name in raw:
+        assert name not in listed, name
+        assert f"]({name})" in history, name
+    assert "/bench/bench_d10_*.md" in config["not_in_nav"]
+
+
+def test_changelog_is_a_users_changelog():
+    """CHANGELOG.md: under 15 KB; an Unreleased section first, then versions; under each, only
+    Keep a Changelog's sections, each entry one to three lines."""
+    text = _text("CHANGELOG.md")
+    assert len(text.encode()) < 15_000
+    versions = re.findall(r"^## (.+)$", text, flags=re.M)
+    assert versions[0] == "Unreleased" and all(
+        re.fullmatch(r"\d+\.\d+\.\d+ \(\d{4}-\d\d-\d\d\)", v) for v in versions[1:]), versions
+    kinds = set(re.findall(r"^### (.+)$", text, flags=re.M))
+    assert kinds <= {"Added", "Changed", "Deprecated", "Removed", "Fixed", "Security"}, kinds
+    entries = re.findall(r"^- .*(?:\n  .*)*", text, flags=re.M)
+    assert entries and max(e.count("\n") for e in entries) <= 2
+
+
+def test_costs_block_and_command():
+    """The filter-choice page's table has its cost columns, made by `python -m experiments.costs`
+    (whose help runs), with a row for every builder of the command's table."""
+    from experiments import costs
+
+    page = _text("docs/choosing.md")
+    block = page.split("<!-- results:costs:start -->", 1)[1].split("<!-- results:costs:end -->")[0]
+    assert "| first call | per step |" in block
+    assert "Made by `python -m experiments.costs --out results/costs --page docs/choosing.md`" \
+        in block
+    for row in costs.ROWS:
+        line = next(l for l in block.splitlines() if f"`{row.builder}`" in l)
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        timed = [re.fullmatch(r"[0-9.]+&nbsp;m?s", c) for c in cells[-2:]]
+        assert all(timed) if row.build is not None else cells[-2:] == ["-", "-"], line
+    record = json.loads(_text("results/costs/results.json"))
+    assert record["benchmark"] == "costs" and len(record["rows"]) == sum(
+        r.build is not None for r in costs.ROWS)
+    done = subprocess.run([sys.executable, "-m", "experiments.costs", "--help"], cwd=ROOT,
+                          capture_output=True, text=True, check=False)
+    assert done.returncode == 0 and "--page" in done.stdout, done.stderr[-2000:]
+
+
+def _png_size(path) -> tuple:
+    """(width, height) of a PNG, read from its header."""
+    with open(path, "rb") as f:
+        head = f.read(24)
+    assert head[:8] == b"\x89PNG\r\n\x1a\n", path
+    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+
+
+def test_screenshots_are_small_and_laptop_wide():
+    folder = os.path.join(ROOT, "docs", "screenshots")
+    shots = sorted(f for f in os.listdir(folder) if f.endswith(".png"))
+    assert {"index.png", "choosing.png", "guide.png"} <= set(shots), shots
+    for name in shots:
+        path = os.path.join(folder, name)
+        assert os.path.getsize(path) < 400_000, name
+        assert _png_size(path)[0] == 1280, name
