@@ -37,6 +37,10 @@ Entry points:
   ``csf_jax.gaussian_prior()`` / ``exact_mixture_prior()`` / ``learned_prior(network)``: CSF's
     prior-score sources (``filter(..., prior=)``).
   ``csf_jax.metrics``: error metrics; ``csf_jax.rmse`` the paper's RMSE.
+  ``csf_jax.fit(build, theta0, obs, ensemble, key=...)``: a model's parameters by maximum
+    likelihood (the filters' log evidence); ``csf_jax.ParametricModel(build, theta)``: a model
+    whose numbers are traced (``jax.grad``, ``jax.vmap`` over them, one compilation);
+    ``csf_jax.positive`` its constraint.
 """
 
 # _threads first: one OpenBLAS thread for jaxlib's LAPACK kernels (see csf_jax._threads)
@@ -70,11 +74,13 @@ from csf_jax.filters.csf import csf_filter as filter  # noqa: A001  (the user-fa
 from csf_jax.filters.driver import Method, run
 from csf_jax.filters.sharded import gather_result, sharded_letkf, site_mesh
 from csf_jax.filters.sharded_transform import sharded_transform_filter
+from csf_jax.fit import FitResult, Transform, fit, positive
 from csf_jax.guidance import GuidanceConfig
 from csf_jax.inflation import InflationConfig
 from csf_jax.metrics import rmse
 from csf_jax.mixture import MixtureConfig
 from csf_jax.networks import NetworkConfig, init_params
+from csf_jax.parametric import ParametricModel
 from csf_jax.pretrained import load_pretrained
 from csf_jax.prior import (
                              PriorConfig,
@@ -121,7 +127,8 @@ __all__ = ["CSFConfig", "FilterResult", "GuidanceConfig", "Likelihood", "Mixture
            "sharded_letkf", "sharded_transform_filter", "site_mesh", "gather_result", "ensf",
            "ENSFConfig", "ienks", "IEnKSConfig",
            "local_transform_filter", "LocalTransformConfig", "CovarianceConfig", "Method", "run",
-           "methods", "SamplerConfig", "InflationConfig", "PriorConfig"]
+           "methods", "SamplerConfig", "InflationConfig", "PriorConfig", "ParametricModel",
+           "fit", "FitResult", "Transform", "positive"]
 
 
 def __getattr__(name: str):

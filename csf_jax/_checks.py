@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import inspect
 import json
 import math
 import numbers
@@ -60,8 +61,9 @@ def check_missing_supported(name: str, obs, model) -> None:
 
 
 def check_obs(obs, model, *, name: str = "filter") -> tuple[int, int]:
-    """Check ``obs (K, m)`` against ``model``: shape, float dtype, no inf (NaN: missing), and that
-    the model's noise can leave missing entries out; return ``(K, m)``."""
+    """Check ``obs (K, m)`` against ``model``: shape, dtype (``check_obs_dtype``), no inf (NaN:
+    missing), values in the likelihood's support (``check_support``), and that the model's noise
+    can leave missing entries out; return ``(K, m)``."""
     obs = jnp.asarray(obs)
     if obs.ndim != 2:
         raise ValueError(f"{name}: obs must have shape (K, m) = (steps, obs_dim), got {obs.shape}; "
@@ -72,11 +74,60 @@ def check_obs(obs, model, *, name: str = "filter") -> tuple[int, int]:
                          f"obs_dim={model.obs_dim}")
     if K < 1:
         raise ValueError(f"{name}: obs must hold at least one step, got shape {obs.shape}")
-    if not jnp.issubdtype(obs.dtype, jnp.floating):
-        raise TypeError(f"{name}: obs must be a floating array, got dtype {obs.dtype}")
+    check_obs_dtype(name, obs, model)
     check_finite(f"{name}: obs", obs, allow_nan=True)
+    check_support(name, obs, model)
     check_missing_supported(name, obs, model)
     return K, m
+
+
+def is_discrete(model) -> bool:
+    """Whether ``model``'s observations are counts (a ``Likelihood`` with ``discrete=True``)."""
+    return bool(getattr(model.obs_noise, "discrete", False))
+
+
+def check_obs_dtype(name: str, obs, model) -> None:
+    """``obs`` must be floating; integer counts are taken too where the observation law is
+    discrete (``Likelihood.discrete``, e.g. ``poisson_likelihood()``): the filter casts them to
+    its float dtype. TypeError otherwise, saying to pass floats."""
+    dtype = jnp.result_type(obs)
+    if jnp.issubdtype(dtype, jnp.floating):
+        return
+    if is_discrete(model):
+        if jnp.issubdtype(dtype, jnp.integer):
+            return
+        raise TypeError(f"{name}: obs must be integer counts or a floating array (NaN marks a "
+                        f"missing entry) for the {model.obs_noise.name} likelihood, got dtype "
+                        f"{dtype}")
+    raise TypeError(f"{name}: obs must be a floating array, got dtype {dtype}; pass floats "
+                    f"(e.g. np.asarray(obs, np.float32)): only a discrete likelihood "
+                    f"(Likelihood(discrete=True), e.g. poisson_likelihood()) takes integer obs")
+
+
+def check_support(name: str, obs, model) -> None:
+    """Refuse an observation outside the support of the model's likelihood
+    (``Likelihood.support``, e.g. a negative or fractional Poisson count), naming the first
+    one by step and entry; NaN (missing) entries are skipped. No-op for tracers and for a law
+    without a support check."""
+    noise = model.obs_noise
+    support = getattr(noise, "support", None)
+    if support is None or not is_concrete(obs):
+        return
+    if not callable(support):
+        raise TypeError(f"{name}: the likelihood {noise.name!r} has a support that is not "
+                        f"callable ({type(support).__name__}); give y -> bool, or None")
+    arr = np.asarray(obs)
+    with np.errstate(invalid="ignore"):
+        inside = np.asarray(support(arr), bool)
+    outside = ~inside & ~np.isnan(arr) if np.issubdtype(arr.dtype, np.floating) else ~inside
+    if not outside.any():
+        return
+    k, j = (int(i) for i in np.argwhere(outside)[0])
+    text = getattr(noise, "support_text", "")
+    what = f" ({text})" if text else ""
+    raise ValueError(f"{name}: obs[{k}, {j}] = {arr[k, j]:g} is outside the support of the "
+                     f"{noise.name} likelihood{what}; correct the data, or mark an entry that "
+                     f"was not observed with NaN (entries outside: {int(outside.sum())})")
 
 
 def check_inputs(inputs, num_steps: int, model, *, name: str = "filter") -> None:
@@ -101,7 +152,8 @@ def check_filter_inputs(obs, ensemble, model, *, name: str = "filter") -> tuple[
     """Check ``obs (K, m)`` and ``ensemble (N, d)`` against ``model``; return ``(K, m, N, d)``.
 
     NaN in ``obs`` means 'not observed' (per step and coordinate); inf in ``obs`` and any
-    non-finite entry of ``ensemble`` are errors."""
+    non-finite entry of ``ensemble`` are errors, as are observations outside the likelihood's
+    support. ``obs`` is floating, or integer counts for a discrete likelihood."""
     obs = jnp.asarray(obs)
     ensemble = jnp.asarray(ensemble)
     if obs.ndim != 2:
@@ -122,12 +174,67 @@ def check_filter_inputs(obs, ensemble, model, *, name: str = "filter") -> tuple[
         raise ValueError(f"{name}: obs must hold at least one step, got shape {obs.shape}")
     if N < 2:
         raise ValueError(f"{name}: ensemble needs at least 2 particles, got N={N}")
-    for label, x in (("obs", obs), ("ensemble", ensemble)):
-        if not jnp.issubdtype(x.dtype, jnp.floating):
-            raise TypeError(f"{name}: {label} must be a floating array, got dtype {x.dtype}")
-        check_finite(f"{name}: {label}", x, allow_nan=label == "obs")
+    check_obs_dtype(name, obs, model)
+    if not jnp.issubdtype(ensemble.dtype, jnp.floating):
+        raise TypeError(f"{name}: ensemble must be a floating array, got dtype {ensemble.dtype}")
+    check_finite(f"{name}: obs", obs, allow_nan=True)
+    check_finite(f"{name}: ensemble", ensemble)
+    check_support(name, obs, model)
     check_missing_supported(name, obs, model)
     return K, m, N, d
+
+
+def as_array(x, label: str, name: str):
+    """``x`` as an array at the API boundary: a ``jax.Array`` (a tracer, a global array) or a
+    numpy array as it is; a list or other array-like through numpy (``jnp.shape`` of a list is
+    deprecated in JAX), so no warning comes from inside the library. None, and what numpy cannot
+    make a numeric array of (ragged rows, objects), is a one-line TypeError naming ``label``."""
+    if isinstance(x, (jax.Array, jax.core.Tracer, np.ndarray)):
+        return x
+    if x is None:
+        raise TypeError(f"{name}: {label} is None; give an array {_SHAPES.get(label, '')}")
+    if not is_concrete(x):
+        return jnp.asarray(x)  # a list of tracers: stacked by jnp
+    try:
+        arr = np.asarray(x)
+    except (TypeError, ValueError):
+        arr = None
+    if arr is None or arr.dtype == object or not (np.issubdtype(arr.dtype, np.number)
+                                                  or arr.dtype == np.bool_):
+        raise TypeError(f"{name}: {label} must be a numeric array {_SHAPES.get(label, '')}, got "
+                        f"a {type(x).__name__} that numpy cannot make one of (ragged rows or "
+                        f"non-numbers?)")
+    return arr
+
+
+_SHAPES = {"obs": "of shape (K, m) = (steps, obs_dim)",
+           "ensemble": "of shape (N, d) = (particles, dim)"}
+
+
+def check_static(name: str, **settings) -> None:
+    """Refuse a traced Python setting (``return_ensembles``, ``check_finite``, ``shards``): under
+    ``jax.jit`` every argument is traced unless marked static, and these choose what is compiled.
+    The TypeError says to mark it static. ``progress`` must be a callable or None."""
+    for arg, value in settings.items():
+        if isinstance(value, jax.core.Tracer):
+            raise TypeError(f"{name}: {arg} is traced (an argument of jax.jit), but it chooses "
+                            f"what is compiled; mark it static: jax.jit(f, static_argnames="
+                            f"({arg!r},)), or bind it with functools.partial")
+        if arg == "progress" and value is not None and not callable(value):
+            raise TypeError(f"{name}: progress must be a callable k -> None or None, got "
+                            f"{type(value).__name__}")
+
+
+def static_pytree(cls):
+    """Register ``cls`` (a hashable NamedTuple or frozen dataclass of settings: a model, a
+    config) as a pytree with no leaves, the instance itself its static aux data, so that
+    ``jax.jit(f)(..., model=model, config=config)`` takes it as the static value it is rather
+    than tracing its numbers and failing on its strings. Idempotent; returns ``cls``."""
+    try:
+        jax.tree_util.register_static(cls)
+    except ValueError:  # registered already
+        pass
+    return cls
 
 
 def check_key(key, name: str = "filter") -> None:
@@ -340,13 +447,58 @@ def read_json_record(directory: str, what: str, missing: str, remedy: str = "") 
     return record
 
 
-def renamed_keywords(**renames):
-    """Decorator: accept each keyword's old name (``old="new"``) for one version, with a
-    ``DeprecationWarning`` naming the new one; both at once is a TypeError."""
+def positional_check(fn, call: str | None = None):
+    """A check ``args -> None`` refusing more positional arguments than ``fn``'s signature has,
+    with a one-line TypeError naming them and the keyword-only arguments to name instead
+    (``model=``, ``key=``), in place of Python's bare argument count. ``call``: the name in the
+    message (default ``fn.__name__``)."""
+    call = call or fn.__name__
+    params = inspect.signature(fn).parameters.values()
+    if any(p.kind is p.VAR_POSITIONAL for p in params):
+        return lambda args: None
+    positional = [p.name for p in params
+                  if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
+    required = [p.name for p in params if p.kind is p.KEYWORD_ONLY and p.default is p.empty]
+    named = " and ".join(f"{k}=" for k in required) or "the settings"
+    example = ", ".join(positional + [f"{k}={k}" for k in required])
+
+    def check(args) -> None:
+        if len(args) > len(positional):
+            raise TypeError(f"{call}: takes {len(positional)} positional argument(s) "
+                            f"({', '.join(positional)}), got {len(args)}; {named} are keywords: "
+                            f"{call}({example})")
+
+    return check
+
+
+def positional_limit(call: str | None = None):
+    """Decorator: ``positional_check`` before every call of the function."""
 
     def wrap(fn):
+        check = positional_check(fn, call)
+
         @functools.wraps(fn)
         def inner(*args, **kwargs):
+            check(args)
+            return fn(*args, **kwargs)
+
+        return inner
+
+    return wrap
+
+
+def renamed_keywords(call: str | None = None, /, **renames):
+    """Decorator: accept each keyword's old name (``old="new"``) for one version, with a
+    ``DeprecationWarning`` naming the new one; both at once is a TypeError. Too many positional
+    arguments (``model`` passed positionally) are refused as ``positional_check`` says; ``call``:
+    the name in its message (default the function's)."""
+
+    def wrap(fn):
+        check = positional_check(fn, call)
+
+        @functools.wraps(fn)
+        def inner(*args, **kwargs):
+            check(args)
             for old, new in renames.items():
                 if old in kwargs:
                     if new in kwargs:

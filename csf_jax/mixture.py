@@ -70,6 +70,7 @@ from csf_jax.ssm import (
     StateSpaceModel,
     curvature,
     log_likelihood,
+    log_normalizer,
     observed,
     process_cov,
     tail_df,
@@ -236,6 +237,12 @@ class Selection(NamedTuple):
     informed: whether the step assimilates an observed entry (``informative``); without one
       every member is kind 0 with its own propagated draw (``prior_ens``), the shock components
       are off, ``particle_weight`` is 1, ``log_bf`` is 0 and the memory is carried unchanged.
+    log_evidence: this step's ``log p(y | y_1 .. y_{k-1})`` under the model's own prior as the
+      mixture reads it: the log of the sum over the particle and ensemble components of each
+      one's prior weight given no jump times its evidence, with the observation law's constant.
+      The shock components (a jump the model does not have) are left out, so the figure is the
+      model's likelihood, comparable with the particle filter's. 0 without an informed step;
+      None where the law gives no constant (``ssm.log_normalizer``).
     """
 
     kind: jax.Array
@@ -245,6 +252,7 @@ class Selection(NamedTuple):
     particle_weight: jax.Array
     shock_weight: jax.Array
     informed: jax.Array
+    log_evidence: jax.Array | None = None
 
 
 def uses_particles(config: MixtureConfig, model: StateSpaceModel) -> bool:
@@ -393,7 +401,26 @@ def select(model: StateSpaceModel, config: MixtureConfig, key, y, centers, prior
     kind = jnp.where(informed, kind, 0)
     draws = jnp.where(informed, draws, prior_ens)
     particle_weight = jnp.where(informed, particle_weight, 1.0)
-    return Selection(kind, draws, inflation, log_bf, particle_weight, shock_weight, informed)
+    const = log_normalizer(model, y)
+    # the model's own evidence: the particle and ensemble readings, each at its prior weight
+    # given no jump; the shock components are CSF's hypothesis, not the model's
+    calm = logsumexp(jnp.where(jnp.isnan(log_calm_w), -jnp.inf, log_calm_w)) - log_calm
+    log_evidence = None if const is None else jnp.where(
+        informed, calm + proposal_constant(d, tail_df(model), dtype) + const.astype(dtype), 0.0)
+    return Selection(kind, draws, inflation, log_bf, particle_weight, shock_weight, informed,
+                     log_evidence)
+
+
+def proposal_constant(d: int, df: int | None, dtype) -> jax.Array:
+    """What ``importance_weights(normalized=True)`` leaves out of a component's log evidence: the
+    Gaussian normalising constants cancel between the prior and a Gaussian proposal (0); a
+    Student-t proposal with ``df`` degrees of freedom per whitened coordinate (``tail_df``) has
+    its own, ``d (log Gamma((df + 1) / 2) - log Gamma(df / 2) - log(df pi) / 2)`` in place of
+    the Gaussian's ``-d log(2 pi) / 2``."""
+    if df is None:
+        return jnp.zeros((), dtype)
+    t_const = math.lgamma(0.5 * (df + 1.0)) - math.lgamma(0.5 * df) - 0.5 * math.log(df * math.pi)
+    return jnp.asarray(d * (-0.5 * math.log(2.0 * math.pi) - t_const), dtype)
 
 
 def transports(config: MixtureConfig, prior_name: str) -> bool:

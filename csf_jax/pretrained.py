@@ -7,8 +7,9 @@ experiment). They are made by ``python -m experiments.train --export`` (docs/gui
 load on any platform and device count: the ``cpu:0`` shardings their orbax metadata records are
 ignored and the parameters restored onto the default device (``csf_jax.trained.load_dir``).
 
-A loaded model is a ``csf_jax.TrainedPrior``; pass it whole to ``csf_jax.filter`` (the
-checked route). A damaged or inconsistent model folder fails with one line naming the folder and
+A loaded model is a ``csf_jax.TrainedPrior`` carrying the fingerprint of its problem's default
+model (``with_fingerprint``); pass it whole to ``csf_jax.filter`` (the checked route), which
+refuses it for a model with other dynamics, naming what differs. A damaged or inconsistent model folder fails with one line naming the folder and
 the mismatching field.
 """
 
@@ -16,8 +17,8 @@ from __future__ import annotations
 
 import os
 
-from csf_jax import networks
-from csf_jax.trained import TrainedPrior, export, load_dir  # noqa: F401  (re-exported)
+from csf_jax import networks, problems
+from csf_jax.trained import TrainedPrior, export, load_dir, model_fingerprint  # noqa: F401
 from csf_jax.trained import deprecated_alias as _deprecated_alias
 from csf_jax.training.data import DatasetConfig
 from csf_jax.training.train import TrainConfig
@@ -67,7 +68,27 @@ def load_pretrained(problem: str) -> TrainedPrior:
                                 f"make it with: python -m experiments.train "
                                 f"{MODEL_FOR[problem]} --export")
     model = MODEL_FOR[problem]
-    return load_dir(path, serves=() if model == problem else (problem,))
+    return with_fingerprint(load_dir(path, serves=() if model == problem else (problem,)))
+
+
+def with_fingerprint(prior: TrainedPrior) -> TrainedPrior:
+    """``prior`` with ``meta["model"]``, the ``model_fingerprint`` of its registered problem at
+    its default settings (``problems.get(prior.problem)``), where the record has none.
+
+    The shipped folders were written before priors recorded their model; the fingerprint is
+    computed here, on load, rather than stored, so the folders stay as they are and the probe
+    points come from this platform's own random numbers. ``csf_jax.filter`` then refuses the
+    shipped prior for a model whose dynamics differ from the one it was trained on (see
+    ``csf_jax.trained.model_fingerprint``): its drift (``dt``, ``C``, the wells, the cubic's
+    coupling), observation map and noises (``process_std``, ``obs_std``, ``obs_scale``, the
+    noise law), dimensions and initial law (``x0_mean``, ``x0_std``). Settings outside the
+    dynamics are not compared: the length ``num_steps`` and the truth's shocks (``shock_count``,
+    ``shock_size``), which only the simulated data see.
+    """
+    if "model" in prior.meta or prior.problem not in problems.CONFIGS:
+        return prior
+    model = problems.get(prior.problem)
+    return prior._replace(meta={**prior.meta, "model": model_fingerprint(model)})
 
 
 def __getattr__(name: str):

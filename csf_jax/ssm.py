@@ -26,6 +26,7 @@ import numpy as np
 from jax.scipy.special import gammaln
 
 from csf_jax import _checks, _linalg
+from csf_jax.parametric import as_float
 
 Array = jax.Array
 
@@ -68,6 +69,11 @@ class ObservationNoise(NamedTuple):
       tail_df: optional degrees of freedom of the noise's tails (Cauchy: 1): CSF's importance
         proposals are then Student-t with these degrees of freedom (``GuidanceConfig.proposal_df``
         left at None), so that they reach the heavy-tailed posterior's tails.
+      log_norm: optional ``observed (m,) bool -> scalar``, the log normalising constant that
+        ``log_prob`` leaves out, over the observed entries: ``log_prob + log_norm`` is the
+        normalised log-density (``normalized_log_likelihood``). The filters' log evidence
+        (``FilterResult.log_evidence``) needs it where it uses this density (the particle
+        filter, CSF); without it those filters report no evidence. The constructors here give it.
     """
 
     name: str
@@ -79,6 +85,7 @@ class ObservationNoise(NamedTuple):
     covariance: tuple | None = None
     marginal: Callable[[Array, Array], Array] | None = None
     tail_df: int | None = None
+    log_norm: Callable[[Array], Array] | None = None
 
     @property
     def fisher_information(self) -> float:
@@ -136,17 +143,21 @@ def _iid_noise(name: str, coord_log_prob: Callable[[Array], Array], sample, gaus
     def marginal(r, mask):
         return jnp.sum(jnp.where(mask, coord_log_prob(r), 0.0))
 
-    return ObservationNoise(name, log_prob, sample, float(gaussian_std), marginal=marginal, **extra)
+    return ObservationNoise(name, log_prob, sample, as_float(gaussian_std), marginal=marginal,
+                            **extra)
 
 
 def gaussian_noise(std: float) -> ObservationNoise:
-    """i.i.d. ``N(0, std^2)`` noise."""
+    """i.i.d. ``N(0, std^2)`` noise. ``std`` may be traced (a ``ParametricModel``'s number)."""
     inv_var = 1.0 / std**2
 
     def sample(key, shape):
         return std * jax.random.normal(key, shape)
 
-    return _iid_noise("gaussian", lambda r: -0.5 * inv_var * r * r, sample, std)
+    log = jnp.log if isinstance(std, jax.core.Tracer) else math.log
+    const = -0.5 * log(2.0 * math.pi * std ** 2)
+    return _iid_noise("gaussian", lambda r: -0.5 * inv_var * r * r, sample, std,
+                      log_norm=lambda mask: const * jnp.sum(mask))
 
 
 def covariance_tuple(cov, name: str, size: int | None = None) -> tuple:
@@ -187,9 +198,14 @@ def gaussian_noise_cov(cov) -> ObservationNoise:
         z = jax.random.normal(key, shape)
         return z @ jnp.asarray(chol_np, z.dtype).T
 
+    def log_norm(mask):
+        chol = _linalg.cholesky(_masked_cov(jnp.asarray(cov_np), mask))
+        log_det = 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))   # the observed block's alone
+        return -0.5 * (log_det + math.log(2.0 * math.pi) * jnp.sum(mask))
+
     std = float(np.sqrt(np.mean(np.diag(cov_np))))
     return ObservationNoise("gaussian_cov", log_prob, sample, std, covariance=cov_t,
-                            marginal=marginal)
+                            marginal=marginal, log_norm=log_norm)
 
 
 def cauchy_noise(scale: float) -> ObservationNoise:
@@ -207,7 +223,7 @@ def cauchy_noise(scale: float) -> ObservationNoise:
 
     return _iid_noise("cauchy", lambda r: -jnp.log1p((r / scale) ** 2), sample,
                       cauchy_matched_std(scale), fisher=1.0 / (2.0 * scale ** 2), weight=weight,
-                      tail_df=1)
+                      tail_df=1, log_norm=lambda mask: -math.log(math.pi * scale) * jnp.sum(mask))
 
 
 class Likelihood(NamedTuple):
@@ -222,6 +238,16 @@ class Likelihood(NamedTuple):
         information ``-d^2 log_prob / d eta^2``, clipped at 0.
       mean, variance: optional ``eta (m,) -> (m,)``, ``E[y | eta]`` and ``Var[y | eta]``: the Gaussian
         stand-in of the Kalman-type filters (EnKF, LETKF). Without them those filters refuse the model.
+      log_norm: optional ``observed (m,) bool -> scalar``, the log normalising constant that
+        ``log_prob`` leaves out (one that does not depend on y or eta), over the observed
+        entries; as ``ObservationNoise.log_norm``. Poisson: 0 (its ``log_prob`` is normalised).
+      discrete: y takes discrete values (counts): the filters then take integer ``obs`` too,
+        cast to their float dtype (NaN, for a missing count, needs float ``obs``).
+      support: optional elementwise ``y -> bool`` (any shape, numpy or jax arrays), True where y
+        is a possible value: a concrete filter call refuses an observation outside it (a negative
+        count), naming its step and entry, rather than filtering a density that is not one.
+      support_text: what the support is, in words, for that message ("non-negative integer
+        counts").
     """
 
     name: str
@@ -230,6 +256,15 @@ class Likelihood(NamedTuple):
     fisher: Callable[[Array], Array] | None = None
     mean: Callable[[Array], Array] | None = None
     variance: Callable[[Array], Array] | None = None
+    log_norm: Callable[[Array], Array] | None = None
+    discrete: bool = False
+    support: Callable[[Array], Array] | None = None
+    support_text: str = ""
+
+
+def counts(y):
+    """Elementwise: ``y`` a non-negative integer (a Poisson count); numpy or jax arrays."""
+    return (y >= 0) & (y == y // 1)
 
 
 def poisson_likelihood() -> Likelihood:
@@ -242,7 +277,9 @@ def poisson_likelihood() -> Likelihood:
     def sample(key, eta):
         return jax.random.poisson(key, jnp.exp(eta)).astype(eta.dtype)
 
-    return Likelihood("poisson", log_prob, sample, fisher=jnp.exp, mean=jnp.exp, variance=jnp.exp)
+    return Likelihood("poisson", log_prob, sample, fisher=jnp.exp, mean=jnp.exp, variance=jnp.exp,
+                      log_norm=lambda mask: jnp.zeros((), jnp.float32), discrete=True,
+                      support=counts, support_text="non-negative integer counts")
 
 
 def volatility_likelihood() -> Likelihood:
@@ -256,8 +293,10 @@ def volatility_likelihood() -> Likelihood:
     def sample(key, eta):
         return jnp.exp(0.5 * eta) * jax.random.normal(key, eta.shape, eta.dtype)
 
+    const = -0.5 * math.log(2.0 * math.pi)
     return Likelihood("volatility", log_prob, sample, fisher=lambda eta: jnp.full_like(eta, 0.5),
-                      mean=jnp.zeros_like, variance=jnp.exp)
+                      mean=jnp.zeros_like, variance=jnp.exp,
+                      log_norm=lambda mask: const * jnp.sum(mask))
 
 
 class ProcessNoise(NamedTuple):
@@ -344,6 +383,7 @@ class Step(NamedTuple):
     u: object = None
 
 
+@_checks.static_pytree
 class StateSpaceModel(NamedTuple):
     """A discrete-time state-space model with additive process noise.
 
@@ -367,6 +407,10 @@ class StateSpaceModel(NamedTuple):
         ``N(0, process_std^2)``.
       time_varying: drift and observe take the ``Step`` as a second argument (the time index and
         the per-step input).
+
+    A pytree with no leaves (the model itself is its static data), so a function of it goes
+    through ``jax.jit`` and ``jax.vmap`` as it is written: ``jax.jit(csf_jax.filter)(None, obs,
+    ensemble, model=model, key=key)``; a new model compiles anew.
     """
 
     name: str
@@ -645,6 +689,27 @@ def log_likelihood(model: StateSpaceModel, y: Array, x: Array) -> Array:
     return model.obs_noise.masked_log_prob(residual(model, y, x), observed(y))
 
 
+def log_normalizer(model: StateSpaceModel, y: Array) -> Array | None:
+    """The log normalising constant that ``log_likelihood`` leaves out, over the observed entries
+    of ``y (m,)`` (a scalar, 0 when none is observed), or None where the observation law does not
+    give it (``log_norm`` None: a user's own noise or likelihood)."""
+    log_norm = model.obs_noise.log_norm
+    if log_norm is None:
+        return None
+    return jnp.asarray(log_norm(observed(y)))
+
+
+def normalized_log_likelihood(model: StateSpaceModel, y: Array, x: Array) -> Array:
+    """``log p(y | x)`` normalised, for one particle: ``y (m,)``, ``x (d,)`` -> scalar; the
+    observed entries of ``y`` only (0 if none). ValueError where the observation law gives no
+    ``log_norm``."""
+    const = log_normalizer(model, y)
+    if const is None:
+        raise ValueError(f"model {model.name!r}: its observation law {model.obs_noise.name!r} "
+                         f"gives no log_norm, so its log-density is known up to a constant only")
+    return log_likelihood(model, y, x) + const.astype(x.dtype)
+
+
 def entry_log_likelihood(model: StateSpaceModel, y: Array, x: Array) -> Array:
     """``(m,)``: ``log p(y_j | x)`` of each entry of ``y (m,)`` (0 where missing), for models whose
     entries are conditionally independent (a ``Likelihood``, or i.i.d. additive noise)."""
@@ -715,7 +780,8 @@ def shock_steps(model: StateSpaceModel, key: Array, num_steps: int | None = None
     return model.shock_times(jax.random.split(key, 5)[1], K)
 
 
-def simulate(model: StateSpaceModel, key: Array, num_steps: int | None = None, inputs=None):
+def simulate(model: StateSpaceModel, key: Array, num_steps: int | None = None, inputs=None, *,
+             check_finite: bool = True):
     """Simulate the truth and its observations.
 
     Returns ``truth (K+1, d)`` (``x_0 .. x_K``) and ``obs (K, m)`` (``y_1 .. y_K``), with the model's
@@ -723,6 +789,11 @@ def simulate(model: StateSpaceModel, key: Array, num_steps: int | None = None, i
     leaves have leading axis K (K defaults to theirs); a NaN or inf input is refused, as the
     filters refuse it (a concrete call: under jit or vmap the caller owns the values). Same key,
     same trajectory. Jit- and vmap-friendly.
+
+    ``check_finite``: on a concrete call, a trajectory that diverged (an inf or NaN in the truth
+    or the observations, e.g. an explicit step too large for a stiff drift) raises a one-line
+    FloatingPointError naming the model and the first non-finite step; False returns it as it
+    is. Under jit or vmap nothing is raised (the values are traced): check them yourself.
     """
     check_model(model, "simulate")
     _checks.check_key(key, "simulate")
@@ -748,7 +819,29 @@ def simulate(model: StateSpaceModel, key: Array, num_steps: int | None = None, i
         obs = eta + model.obs_noise.sample(k_obs, (K, model.obs_dim))
     else:
         obs = jax.vmap(model.obs_noise.sample)(jax.random.split(k_obs, K), eta)
+    if check_finite and _checks.is_concrete(truth, obs):
+        why = _divergence(truth, obs)
+        if why is not None:
+            raise FloatingPointError(f"simulate: model {model.name!r} diverged: {why}; use a "
+                                     f"smaller dt (step size) or a stable drift, or pass "
+                                     f"check_finite=False to get the values anyway")
     return truth, obs
+
+
+def _divergence(truth, obs) -> str | None:
+    """None if ``truth (K+1, d)`` and ``obs (K, m)`` are finite; else the first non-finite step in
+    words (``x_k`` or ``y_k``, k of K) and how large the truth grew before it."""
+    truth, obs = np.asarray(truth), np.asarray(obs)
+    bad_x = ~np.isfinite(truth).all(axis=-1)
+    bad_y = np.concatenate([[False], ~np.isfinite(obs).all(axis=-1)])  # y_k sits at row k
+    bad = bad_x | bad_y
+    if not bad.any():
+        return None
+    k, K = int(np.argmax(bad)), truth.shape[0] - 1
+    what = f"the truth x_{k}" if bad_x[k] else f"the observation y_{k}"
+    seen = truth[:k + 1][np.isfinite(truth[:k + 1])]
+    size = f"; the truth reached |x| = {np.abs(seen).max():.2g} by then" if seen.size else ""
+    return f"{what} is not finite (step {k} of {K}{size})"
 
 
 def _num_steps(model: StateSpaceModel, num_steps, inputs, name: str) -> int:

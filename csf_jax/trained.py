@@ -59,9 +59,11 @@ class TrainedPrior(NamedTuple):
     serves: tuple = ()
 
     def save(self, directory: str) -> str:
-        """Write this prior to ``directory`` (replacing a model folder there); returns its path.
-        ``csf_jax.load_prior(directory, model)`` reads it back. An empty path, a file or a folder
-        that cannot be written is refused with one line naming it."""
+        """Write this prior to ``directory`` (replacing a prior saved there); returns its path.
+        ``csf_jax.load_prior(directory, model)`` reads it back. An empty path, a file, a folder
+        that cannot be written, or one whose ``params/`` or ``meta.json`` a save did not write
+        (``csf_jax.trained.foreign_content``) is refused with one line naming it; nothing of the
+        user's is deleted."""
         directory = _checks.check_path(directory, "TrainedPrior.save")
         export(directory, self.params, self.network, self.meta)
         return os.path.abspath(directory)
@@ -164,17 +166,21 @@ def _fingerprint(model: StateSpaceModel) -> dict:
 
 
 def fingerprint_mismatch(found: dict, model: StateSpaceModel) -> str | None:
-    """None if the fingerprint ``found`` (from a meta record) is ``model``'s; else what differs."""
+    """None if the fingerprint ``found`` (from a meta record) is ``model``'s; else everything
+    that differs, ``"; "``-joined: each setting with both values, then the initial ensemble, or
+    (at the same probe points) the drift and the observation map."""
     own = _fingerprint(model)
-    for field in ("name", "dim", "obs_dim", "process_noise", "obs_noise"):
-        if not _close(found.get(field), own[field]):
-            return f"{field}: trained {found.get(field)!r}, given {own[field]!r}"
+    diffs = [f"{field}: trained {found.get(field)!r}, given {own[field]!r}"
+             for field in ("name", "dim", "obs_dim", "process_noise", "obs_noise")
+             if not _close(found.get(field), own[field])]
+    names = {"x": "initial ensemble", "drift": "drift", "observe": "observation map"}
     for part in ("x", "drift", "observe"):
         a, b = found.get("probe", {}).get(part), own["probe"][part]
         if a is None or np.shape(a) != np.shape(b) or not np.allclose(a, b, rtol=1e-4, atol=1e-5):
-            what = {"x": "initial ensemble", "drift": "drift", "observe": "observation map"}[part]
-            return f"its {what} differs at the probe points"
-    return None
+            diffs.append(f"its {names[part]} differs at the probe points")
+            if part == "x":  # the maps were probed at other points: comparing them says nothing
+                break
+    return "; ".join(diffs) or None
 
 
 def _close(a, b) -> bool:
@@ -225,8 +231,60 @@ def unpack(trained, problem, network: networks.NetworkConfig | None,
     return trained.params, trained.network
 
 
+# The names orbax writes at the top of a checkpoint folder (files): metadata files start with an
+# underscore, the rest are these (OCDBT manifests, the commit marker, older formats' files).
+_ORBAX_FILES = ("_", "commit_success", "manifest.", "ocdbt", "descriptor", "checkpoint")
+
+
+def is_prior_record(path: str) -> bool:
+    """Whether the file ``path`` is a ``meta.json`` that ``export`` wrote: a JSON object naming
+    the ``problem``, its ``dim`` and the ``network``."""
+    try:
+        with open(path) as f:
+            record = json.load(f)
+    except (OSError, ValueError):
+        return False
+    return isinstance(record, dict) and {"problem", "dim", "network"} <= record.keys()
+
+
+def foreign_content(directory: str) -> str | None:
+    """What in ``directory`` a save would replace that no save wrote, in words; None if nothing.
+
+    A save writes ``params/`` (orbax deletes a folder there first) and ``meta.json``, and touches
+    nothing else, so other files beside them are safe. Replaced are only: a ``meta.json`` that is
+    a prior's record (``is_prior_record``), and a ``params/`` that is empty or an orbax checkpoint
+    (``_CHECKPOINT_METADATA`` or ``_METADATA``) with no file orbax does not write, beside such a
+    record. Anything else there belongs to someone else and is refused by ``export``.
+    """
+    meta_path = os.path.join(directory, "meta.json")
+    params_dir = os.path.join(directory, "params")
+    has_record = os.path.isfile(meta_path) and is_prior_record(meta_path)
+    if os.path.lexists(meta_path) and not has_record:
+        return f"{meta_path} is not a csf_jax prior's record"
+    if not os.path.lexists(params_dir):
+        return None
+    if os.path.islink(params_dir) or not os.path.isdir(params_dir):
+        return f"{params_dir} is not a folder a save wrote"
+    entries = sorted(os.listdir(params_dir))
+    if not entries:
+        return None
+    shown = ", ".join(entries[:3]) + (", ..." if len(entries) > 3 else "")
+    if not has_record:
+        return f"{params_dir} holds files ({shown}) and no csf_jax meta.json is beside it"
+    strays = [e for e in entries if os.path.isfile(os.path.join(params_dir, e))
+              and not e.startswith(_ORBAX_FILES)]
+    if strays or not {"_CHECKPOINT_METADATA", "_METADATA"} & set(entries):
+        what = ", ".join(strays[:3]) if strays else shown
+        return f"{params_dir} holds files orbax did not write ({what})"
+    return None
+
+
 def export(directory: str, params, network: networks.NetworkConfig, meta: dict) -> None:
-    """Write ``params`` (orbax) and ``meta.json`` to ``directory`` (replacing what is there).
+    """Write ``params`` (orbax) and ``meta.json`` to ``directory``, replacing a prior saved there.
+
+    A folder holding files that no save wrote (``foreign_content``: a user's ``params/`` or
+    ``meta.json``) is refused with one FileExistsError naming them, never emptied; other files
+    beside ``params/`` and ``meta.json`` are left alone.
 
     ``meta`` must name the ``problem`` and its ``dim``; ``params`` are checked against
     ``network`` and ``dim`` first, so an exported model always loads. The arrays are saved as
@@ -241,6 +299,10 @@ def export(directory: str, params, network: networks.NetworkConfig, meta: dict) 
     directory = os.path.abspath(directory)
     _checks.check_folder(directory, f"save to {directory}", writable=True)
     _checks.check_folder(os.path.join(directory, "params"), f"save to {directory}")
+    foreign = foreign_content(directory)
+    if foreign is not None:
+        raise FileExistsError(f"save to {directory}: {foreign}, and saving would replace it; "
+                              f"choose an empty or new folder")
     try:
         os.makedirs(directory, exist_ok=True)
         with ocp.StandardCheckpointer() as ckpt:

@@ -8,7 +8,7 @@ import pathlib
 import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1] / "csf_jax"
-LAYERS = {"filters": 1, "methods": 1, "training": 2, "pretrained": 3, "__init__": 4}
+LAYERS = {"filters": 1, "methods": 1, "fit": 2, "training": 2, "pretrained": 3, "__init__": 4}
 
 
 def _layer(module: str) -> int:

@@ -5,8 +5,10 @@ static ``config`` and its array-valued ``params``, made by the filter module's `
 builder (``csf_jax.methods``). The driver owns the rest:
 
     run(method, obs, state0, model=, key=, inputs=)
-      checks (model, shapes, dtypes, inf, keys, inputs), promotion to one float dtype (at least
-      float32), then R and Q positive definite in it and drift/observe of the right shapes,
+      ``boundary`` (lists to arrays, an ensemble given, Python flags not traced), checks (model,
+      shapes, dtypes, inf, a likelihood's support, keys, inputs), promotion to one float dtype
+      (at least float32), then R and Q positive definite in it and drift/observe of the right
+      shapes,
       with progress: a line before the first compilation and its time after,
       init -> one jitted lax.scan over y_1 .. y_K:
           model bound to the step (time index k, input u_k: ``ssm.at_step``), progress callback,
@@ -38,6 +40,7 @@ import numpy as np
 
 from csf_jax import _checks
 from csf_jax.filters.result import FilterResult, mark_nonfinite
+from csf_jax.parametric import ParametricModel, cast_theta, checkable_model
 from csf_jax.ssm import (
     StateSpaceModel,
     at_step,
@@ -57,12 +60,15 @@ class StepOutput(NamedTuple):
       lists what each filter reports): CSF's mixture weights ``particle_weight`` and
       ``shock_weight`` (scalars), the Kalman filter's ``cov`` (d, d); the particle filter's
       ``ess`` (a scalar) goes to ``FilterResult.ess`` instead.
+    log_evidence: the scalar ``log p(y_k | y_1 .. y_{k-1})`` (``csf_jax.evidence``), or None where
+      the filter does not estimate it.
     """
 
     mean: jax.Array
     std: jax.Array
     ensemble: jax.Array | None = None
     info: dict = {}
+    log_evidence: jax.Array | None = None
 
 
 class Kernel(NamedTuple):
@@ -84,6 +90,8 @@ class Kernel(NamedTuple):
     runner: optional ``(method, obs, ensemble, model=, key=, inputs=, return_ensembles=,
       check_finite=, progress=) -> FilterResult`` for a filter with a scan of its own (the sharded
       LETKF places its arrays on a device mesh); ``run`` hands the call over whole.
+    parametric: optional, the kernel that runs in its place on a ``ParametricModel``: the same
+      filter with what ``jax.grad`` needs added (the particle filter's resampling score).
     """
 
     name: str
@@ -94,6 +102,7 @@ class Kernel(NamedTuple):
     label: str = ""
     bind: Callable[..., tuple] | None = None
     runner: Callable[..., FilterResult] | None = None
+    parametric: Kernel | None = None
 
 
 @functools.partial(jax.tree_util.register_dataclass, data_fields=["params"],
@@ -116,10 +125,25 @@ class Method:
     config: Any = None
     params: Any = None
 
+    def __post_init__(self):
+        if not isinstance(self.kernel, Kernel):
+            raise TypeError(_not_a_kernel(self.kernel))
+
     @property
     def name(self) -> str:
         """The filter's user-facing name."""
         return self.kernel.name
+
+
+def _not_a_kernel(kernel) -> str:
+    """The one-line message of ``Method(kernel)`` with a ``kernel`` that is not a ``Kernel``
+    (a filter's name, None): how a ``Method`` is made instead."""
+    from csf_jax.methods import REGISTRY  # the builders import this module
+
+    name = kernel if isinstance(kernel, str) and kernel in REGISTRY else "enkf"
+    return (f"csf_jax.Method: kernel must be a csf_jax.filters.driver.Kernel, got {kernel!r:.60} "
+            f"({type(kernel).__name__}); make a Method with a builder, csf_jax.methods.{name}(), "
+            f"or by name, csf_jax.methods.build({name!r})")
 
 
 def refuse_settings(name: str, settings: tuple, named: dict) -> None:
@@ -131,6 +155,7 @@ def refuse_settings(name: str, settings: tuple, named: dict) -> None:
     raise TypeError(f"{name}: takes no settings (it has no config class), got {got}")
 
 
+@_checks.positional_limit("csf_jax.run")
 def run(method: Method, obs, ensemble, *, model: StateSpaceModel, key, inputs=None,
         return_ensembles: bool = False, check_finite: bool = True,
         progress: Callable[[jax.Array], None] | None = None) -> FilterResult:
@@ -159,6 +184,8 @@ def run(method: Method, obs, ensemble, *, model: StateSpaceModel, key, inputs=No
         raise TypeError(f"csf_jax.run: method must be a csf_jax.Method (from a builder of "
                         f"csf_jax.methods, e.g. csf_jax.methods.enkf()), got "
                         f"{type(method).__name__}")
+    obs, ensemble = boundary(method.kernel, obs, ensemble, return_ensembles=return_ensembles,
+                             check_finite=check_finite, progress=progress)
     if method.kernel.runner is not None:
         return method.kernel.runner(method, obs, ensemble, model=model, key=key, inputs=inputs,
                                     return_ensembles=return_ensembles, check_finite=check_finite,
@@ -166,6 +193,23 @@ def run(method: Method, obs, ensemble, *, model: StateSpaceModel, key, inputs=No
     return run_kernel(method.kernel, obs, ensemble, model=model, key=key, config=method.config,
                       params=method.params, inputs=inputs, return_ensembles=return_ensembles,
                       check_finite=check_finite, progress=progress)
+
+
+def boundary(kernel: Kernel, obs, state0, **settings) -> tuple:
+    """What every run checks first, before the model: ``obs`` (and an ensemble filter's
+    ``state0``) as arrays (``_checks.as_array``: lists through numpy), an ensemble filter given
+    an ensemble (not None), and the Python ``settings`` (``return_ensembles``, ...) not traced
+    (``_checks.check_static``). Returns ``(obs, state0)``."""
+    name = kernel.name
+    _checks.check_static(name, **settings)
+    obs = _checks.as_array(obs, "obs", name)
+    if kernel.ensemble:
+        if state0 is None:
+            raise TypeError(f"{name}: ensemble is None, but this filter needs an (N, d) initial "
+                            f"ensemble (e.g. model.initial_ensemble(key, 100)); only the Kalman "
+                            f"filter (csf_jax.methods.kalman()) starts from None")
+        state0 = _checks.as_array(state0, "ensemble", name)
+    return obs, state0
 
 
 def run_kernel(method: Kernel, obs, state0, *, model: StateSpaceModel, key, config=None,
@@ -176,6 +220,11 @@ def run_kernel(method: Kernel, obs, state0, *, model: StateSpaceModel, key, conf
     filters); see the module docstring. ``inputs``: the per-step inputs of a time-varying model,
     a pytree whose leaves have leading axis K."""
     name = method.name
+    obs, state0 = boundary(method, obs, state0, return_ensembles=return_ensembles,
+                           check_finite=check_finite, progress=progress)
+    if isinstance(model, ParametricModel):
+        return _run_parametric(method, obs, state0, model, key, config, params, inputs,
+                               return_ensembles, check_finite, progress)
     if method.bind is not None:
         model, config, params, state0 = method.bind(model, config, params, state0)
     check_model(model, name)
@@ -194,6 +243,50 @@ def run_kernel(method: Kernel, obs, state0, *, model: StateSpaceModel, key, conf
     if progress is not None:
         _announce_compile(static, args)
     result = mark_nonfinite(_scan(*static, *args), obs)
+    warn_if_collapsed(name, result.ess)
+    if check_finite:
+        _checks.check_result_finite(name, result)
+    return result
+
+
+# The kernels whose ``bind`` only checks the model (it changes nothing the scan reads), so they
+# filter a ``ParametricModel`` too; another bind (CSF's trained prior) reads the model's numbers.
+_CHECKING_BINDS = frozenset({"letkf"})
+
+
+def _run_parametric(method: Kernel, obs, state0, pm: ParametricModel, key, config, params,
+                    inputs, return_ensembles: bool, check_finite: bool, progress) -> FilterResult:
+    """``run_kernel`` of a ``ParametricModel``: the checks on ``build(theta)`` (all of them when
+    ``theta`` is concrete; the structure and the shapes of ``obs`` and ``state0`` when traced),
+    then ``_scan_parametric``, which builds the model inside the trace."""
+    name = method.name
+    if method.bind is not None and method.name not in _CHECKING_BINDS:
+        raise TypeError(f"{name}: takes no csf_jax.ParametricModel (its setup reads the model's "
+                        f"numbers before the scan); pass build(theta), or use "
+                        f"csf_jax.methods.enkf() or csf_jax.methods.pf()")
+    method = method.parametric or method
+    concrete = _checks.is_concrete(pm.theta)
+    model = checkable_model(pm.build(pm.theta), name)
+    if method.bind is not None:
+        method.bind(model, config, params, state0)
+    if concrete:
+        check_model(model, name)
+    if method.ensemble:
+        _checks.check_filter_inputs(obs, state0, model, name=name)
+    else:
+        _checks.check_obs(obs, model, name=name)
+    _checks.check_key(key, name=name)
+    _checks.check_inputs(inputs, jnp.shape(obs)[0], model, name=name)
+    method.check(model, config)
+    obs, state0 = _checks.promote_tree(obs, state0)
+    if concrete:
+        check_covariances(model, obs.dtype, name)
+        check_dynamics(model, obs.dtype, inputs, name)
+    static = (method, pm.build, config, bool(return_ensembles), progress)
+    args = (pm.theta, params, obs, state0, key, inputs)
+    if progress is not None:
+        _announce_compile(static, args, _scan_parametric, model.dim)
+    result = mark_nonfinite(_scan_parametric(*static, *args), obs)
     warn_if_collapsed(name, result.ess)
     if check_finite:
         _checks.check_result_finite(name, result)
@@ -249,7 +342,7 @@ def _signature(static: tuple, args: tuple):
                                for x in leaves)
 
 
-def _announce_compile(static: tuple, args: tuple) -> None:
+def _announce_compile(static: tuple, args: tuple, scan=None, dim: int | None = None) -> None:
     """Before the first (compiling) call of a concrete run with ``progress``: say on stderr what
     is compiled, compile it ahead of the call (the call then reuses it), and say how long it took.
     Silent under an outer jit/vmap (nothing is compiled here then) and for a signature seen."""
@@ -259,13 +352,13 @@ def _announce_compile(static: tuple, args: tuple) -> None:
     if sig in _COMPILED:
         return
     method, model = static[0], static[1]
-    obs, state0 = args[1], args[2]
-    sizes = f"d={model.dim}, " + (f"N={jnp.shape(state0)[0]}, " if method.ensemble else "") + \
+    obs, state0 = args[-4], args[-3]
+    sizes = f"d={model.dim if dim is None else dim}, " + (f"N={jnp.shape(state0)[0]}, " if method.ensemble else "") + \
         f"K={jnp.shape(obs)[0]}"
     label = method.label or method.name
     print(f"compiling the {label} filter ({sizes}) ...", file=sys.stderr, flush=True)
     t0 = time.perf_counter()
-    _scan.lower(*static, *args).compile()
+    (scan or _scan).lower(*static, *args).compile()
     print(f"compiled the {label} filter in {time.perf_counter() - t0:.1f} s", file=sys.stderr,
           flush=True)
     _COMPILED.add(sig)
@@ -274,6 +367,24 @@ def _announce_compile(static: tuple, args: tuple) -> None:
 @functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4))
 def _scan(method: Kernel, model: StateSpaceModel, config, return_ensembles: bool, progress,
           params, obs, state0, key, inputs) -> FilterResult:
+    return _filter_scan(method, model, config, return_ensembles, progress, params, obs, state0,
+                        key, inputs)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4))
+def _scan_parametric(method: Kernel, build, config, return_ensembles: bool, progress, theta,
+                     params, obs, state0, key, inputs) -> FilterResult:
+    """``_scan`` of the model ``build(theta)``, built inside the trace: ``theta`` (its floating
+    leaves cast to the dtype of ``obs``) is traced, so one compilation serves every value."""
+    model = build(cast_theta(theta, obs.dtype))
+    return _filter_scan(method, model, config, return_ensembles, progress, params, obs, state0,
+                        key, inputs)
+
+
+def _filter_scan(method: Kernel, model: StateSpaceModel, config, return_ensembles: bool, progress,
+                 params, obs, state0, key, inputs) -> FilterResult:
+    """The scan of ``method`` over ``obs (K, m)``, traced inside ``_scan`` or
+    ``_scan_parametric``."""
     K = obs.shape[0]
     state, scan_key = method.init(model, config, params, state0, key)
 
@@ -282,10 +393,12 @@ def _scan(method: Kernel, model: StateSpaceModel, config, return_ensembles: bool
         if progress is not None:
             jax.debug.callback(progress, index)
         state, out = method.step(at_step(model, step_k), config, params, state, y, key_k, step_k)
-        return state, (out.mean, out.std, out.ensemble if return_ensembles else None, out.info)
+        return state, (out.mean, out.std, out.ensemble if return_ensembles else None, out.info,
+                       out.log_evidence)
 
     xs = (jnp.arange(K), obs, steps(K, inputs), jax.random.split(scan_key, K))
-    _, (mean, std, ensembles, info) = jax.lax.scan(body, state, xs)
+    _, (mean, std, ensembles, info, log_evidence) = jax.lax.scan(body, state, xs)
     info = dict(info)
     ess = info.pop("ess", None)
-    return FilterResult(mean=mean, std=std, ensembles=ensembles, ess=ess, info=info or None)
+    return FilterResult(mean=mean, std=std, ensembles=ensembles, ess=ess, info=info or None,
+                        log_evidence=log_evidence)

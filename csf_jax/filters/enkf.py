@@ -21,6 +21,7 @@ import numpy as np
 
 from csf_jax import _linalg
 from csf_jax._checks import is_concrete, renamed_keywords
+from csf_jax.evidence import gaussian_log_evidence
 from csf_jax.filters.driver import Kernel, Method, StepOutput, run
 from csf_jax.filters.result import FilterResult
 from csf_jax.ssm import StateSpaceModel, gaussian_standin, is_additive, observed, propagate
@@ -47,8 +48,11 @@ def ensemble_kalman_filter(obs, ensemble, *, model: StateSpaceModel, key, inputs
         the first compilation).
 
     Returns:
-      ``FilterResult(mean (K, d), std (K, d), ensembles (K, N, d) | None, ess=None, finite (K,))``,
-      mean and std (N-1 denominator) of the analysis ensemble. Under jit/vmap, mean and std are
+      ``FilterResult(mean (K, d), std (K, d), ensembles (K, N, d) | None, ess=None, finite (K,),
+      log_evidence (K,))``, mean and std (N-1 denominator) of the analysis ensemble;
+      ``log_evidence`` the innovation density ``log N(y_k; mean, C + R)`` of the inflated forecast
+      ensemble's predicted observations (``csf_jax.evidence``: exact as N grows for a
+      linear-Gaussian model, with the Gaussian stand-in of any other noise or likelihood). Under jit/vmap, mean and std are
       NaN and ``finite`` False from a non-finite step on (``mark_nonfinite``).
     """
     return run(method(inflation), obs, ensemble, model=model, key=key, inputs=inputs,
@@ -129,7 +133,9 @@ def _step(model: StateSpaceModel, config, inflation, ensemble, y, key, time):
     center = forecast.mean(axis=0)
     forecast = center + inflation.astype(ensemble.dtype) * (forecast - center)
     analysis = enkf_analysis(k_obs, forecast, y, model)
-    return analysis, StepOutput(analysis.mean(axis=0), analysis.std(axis=0, ddof=1), analysis)
+    return analysis, StepOutput(analysis.mean(axis=0), analysis.std(axis=0, ddof=1), analysis,
+                                log_evidence=gaussian_log_evidence(
+                                    *gaussian_standin(model, forecast), y))
 
 
 def check_standin(name: str):

@@ -17,9 +17,11 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 
 from csf_jax import _checks, _linalg
+from csf_jax.evidence import gaussian_log_density
 from csf_jax.filters.driver import Kernel, Method, StepOutput, refuse_settings, run_kernel
 from csf_jax.filters.result import FilterResult
-from csf_jax.problems.linear import LinearGaussian, linear_source, to_model
+from csf_jax.parametric import ParametricModel
+from csf_jax.problems.linear import LinearGaussian, linear_gaussian, linear_source, to_model
 from csf_jax.ssm import StateSpaceModel
 
 
@@ -29,13 +31,18 @@ def kalman_filter(obs, *, model: LinearGaussian | StateSpaceModel, progress=None
 
     Args:
       obs: (K, m) observations ``y_1 .. y_K``; NaN marks a missing entry.
-      model: the ``LinearGaussian`` (``csf_jax.problems.linear.linear_gaussian``), or the
-        ``StateSpaceModel`` that ``to_model`` made of one (what the ensemble filters take).
+      model: the ``LinearGaussian`` (``csf_jax.problems.linear.linear_gaussian``), the
+        ``StateSpaceModel`` that ``to_model`` made of one (what the ensemble filters take), or a
+        ``csf_jax.ParametricModel`` whose ``build(theta)`` returns a ``LinearGaussian``: its
+        numbers traced (``jax.grad`` of ``log_evidence`` is exact; one compilation for every
+        theta of the same sizes). Its matrices are not validated: the caller owns them.
       progress: optional host callback ``k -> None`` at every filter step.
 
     Returns:
-      ``FilterResult``: mean (K, d), std (K, d) with ``std = sqrt(diag(P_{k|k}))``, finite (K,);
-        no ensembles, no ESS. Use ``kalman_filter_cov`` for the full covariances.
+      ``FilterResult``: mean (K, d), std (K, d) with ``std = sqrt(diag(P_{k|k}))``, finite (K,),
+        ``log_evidence`` (K,) the exact ``log p(y_k | y_1 .. y_{k-1})`` (the innovation's
+        Gaussian density over the observed entries); no ensembles, no ESS. Use
+        ``kalman_filter_cov`` for the full covariances.
     """
     result = _run(obs, model, progress)
     return result._replace(info=None)
@@ -65,15 +72,36 @@ def as_linear_gaussian(lg, name: str = "kalman_filter") -> LinearGaussian:
 
 
 def _run(obs, lg, progress, check_finite: bool = False) -> FilterResult:
-    lg = as_linear_gaussian(lg)
+    parametric = isinstance(lg, ParametricModel)
+    lg = _built_linear_gaussian(lg) if parametric else as_linear_gaussian(lg)
     obs = jnp.asarray(obs)
     dtype = _checks.compute_dtype(obs.dtype) if jnp.issubdtype(obs.dtype, jnp.floating) \
         else jnp.float32
     params = tuple(jnp.asarray(a, dtype) for a in (lg.A, lg.H, lg.process_cov(), lg.obs_cov()))
     state0 = (jnp.asarray(lg.m0, dtype), jnp.asarray(lg.p0_std, dtype) ** 2
               * jnp.eye(lg.dim, dtype=dtype))
-    return run_kernel(KALMAN, obs, state0, model=to_model(lg), key=jax.random.key(0),
+    # a ParametricModel's numbers reach the scan as its traced params alone: the static model is
+    # a stand-in of its sizes (the step reads nothing else), so every theta shares one compilation
+    model = _sizes_model(lg.dim, lg.obs_dim, lg.name) if parametric else to_model(lg)
+    return run_kernel(KALMAN, obs, state0, model=model, key=jax.random.key(0),
                       params=params, check_finite=check_finite, progress=progress)
+
+
+def _built_linear_gaussian(pm: ParametricModel) -> LinearGaussian:
+    """``pm.build(pm.theta)``, which must be a ``LinearGaussian`` (made directly, its numbers
+    possibly traced); TypeError otherwise."""
+    lg = pm.build(pm.theta)
+    if not isinstance(lg, LinearGaussian):
+        raise TypeError(f"kalman_filter: a ParametricModel's build(theta) must return a "
+                        f"LinearGaussian (csf_jax.problems.linear.LinearGaussian(A, H, q_std, "
+                        f"r_std, m0, p0_std, num_steps, name)), got {type(lg).__name__}")
+    return lg
+
+
+def _sizes_model(dim: int, obs_dim: int, name: str) -> StateSpaceModel:
+    """A linear-Gaussian model of these sizes (cached: one object per sizes), the Kalman scan's
+    static model when the numbers come from a ``ParametricModel``."""
+    return to_model(linear_gaussian(dim, obs_dim, name=name))
 
 
 def method(*settings, **named) -> Method:
@@ -109,13 +137,16 @@ def _step(model, config, params, state, y, key, time):
     mean = A @ mean
     cov = A @ cov @ A.T + Q
     S = H_k @ cov @ H_k.T + R_k
-    gain = jsl.cho_solve(jsl.cho_factor(S, lower=True), H_k @ cov).T
-    mean = mean + gain @ jnp.where(mask, y - H @ mean, 0.0)
+    factor = jsl.cho_factor(S, lower=True)
+    gain = jsl.cho_solve(factor, H_k @ cov).T
+    innovation = jnp.where(mask, y - H @ mean, 0.0)
+    log_evidence = gaussian_log_density(innovation, jnp.tril(factor[0]), mask)
+    mean = mean + gain @ innovation
     J = eye_d - gain @ H_k
     cov = J @ cov @ J.T + gain @ R_k @ gain.T
     cov = 0.5 * (cov + cov.T)
     std = jnp.sqrt(jnp.clip(jnp.diagonal(cov), 0.0))
-    return (mean, cov), StepOutput(mean, std, None, {"cov": cov})
+    return (mean, cov), StepOutput(mean, std, None, {"cov": cov}, log_evidence)
 
 
 KALMAN = Kernel("kalman_filter", _init, _step, ensemble=False, label="Kalman")

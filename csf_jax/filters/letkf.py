@@ -28,6 +28,7 @@ import numpy as np
 
 from csf_jax import _checks, _linalg
 from csf_jax.covariance import gaspari_cohn
+from csf_jax.evidence import gaussian_log_evidence
 from csf_jax.filters.driver import Kernel, Method, StepOutput, run
 from csf_jax.filters.enkf import check_standin
 from csf_jax.filters.result import FilterResult
@@ -291,15 +292,51 @@ def letkf_analysis(forecast, y, model: StateSpaceModel, index, weight):
         yl = y_anom[:, idx]                      # (N, W)
         c = yl * (taper * obs_w[idx])            # (N, W): Y'^T R^-1 localised
         m = (n - 1) * eye + c @ yl.T
-        lam, vec = jnp.linalg.eigh(m)
-        lam = jnp.maximum(lam, 1e-12)
-        p = (vec / lam) @ vec.T
+        p, w_a = ensemble_transforms(m, n - 1)
         w_bar = p @ (c @ innov[idx])
-        w_a = (vec * jnp.sqrt((n - 1) / lam)) @ vec.T
         return a_i @ (w_bar[:, None] + w_a)     # (N,)
 
     local = jax.vmap(site, in_axes=(1, 0, 0))(anom, index, jnp.asarray(weight, forecast.dtype))
     return mean + local.T
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(1,))
+def ensemble_transforms(m, scale):
+    """``(m^{-1}, sqrt(scale m^{-1}))`` of a symmetric positive-definite ``m (N, N)``, by one
+    eigendecomposition: the LETKF's ensemble-space covariance and its symmetric square-root
+    transform. ``scale``: N - 1 (static).
+
+    Its derivative is the Daleckii-Krein formula (``_transforms_jvp``), not the
+    eigendecomposition's: ``m`` has N - W equal eigenvalues wherever a site sees W < N
+    observations, where ``eigh``'s derivative divides by their zero gaps (NaN), while these
+    matrix functions are smooth there."""
+    lam, vec = jnp.linalg.eigh(m)
+    lam = jnp.maximum(lam, 1e-12)
+    return (vec / lam) @ vec.T, (vec * jnp.sqrt(scale / lam)) @ vec.T
+
+
+@ensemble_transforms.defjvp
+def _transforms_jvp(scale, primals, tangents):
+    """``d f(m) = V (G o (V^T dm V)) V^T`` for ``f(m) = V g(Lambda) V^T``, with ``G_ij`` the
+    divided difference ``(g(l_i) - g(l_j)) / (l_i - l_j)``, and ``g'`` where the two eigenvalues
+    (nearly) coincide."""
+    (m,), (dm,) = primals, tangents
+    lam, vec = jnp.linalg.eigh(m)
+    lam = jnp.maximum(lam, 1e-12)
+    rotated = vec.T @ dm @ vec
+    gap = lam[:, None] - lam[None, :]
+    close = jnp.abs(gap) <= 1e-6 * jnp.maximum(lam[:, None], lam[None, :])
+    middle = 0.5 * (lam[:, None] + lam[None, :])
+
+    def divided(g, slope):
+        values = g(lam)
+        return jnp.where(close, slope(middle),
+                         (values[:, None] - values[None, :]) / jnp.where(close, 1.0, gap))
+
+    inverse = divided(lambda x: 1.0 / x, lambda x: -1.0 / x ** 2)
+    root = divided(lambda x: jnp.sqrt(scale / x), lambda x: -0.5 * jnp.sqrt(scale / x) / x)
+    primal = ((vec / lam) @ vec.T, (vec * jnp.sqrt(scale / lam)) @ vec.T)
+    return primal, (vec @ (inverse * rotated) @ vec.T, vec @ (root * rotated) @ vec.T)
 
 
 #: the forgetting of the candidate radii's accumulated log evidence (``radius_evidence``): the
@@ -465,13 +502,15 @@ def _step(model: StateSpaceModel, static: LETKFStatic, inflation, state, y, key,
         index, weight = local_obs(static.localization, radius)
         return letkf_analysis(forecast, y, model, jnp.asarray(index), weight)
 
+    log_evidence = gaussian_log_evidence(*gaussian_standin(model, forecast), y)
     if not static.radii:
         post = at(static.radius)
-        return post, StepOutput(post.mean(0), post.std(0, ddof=1), post)
+        return post, StepOutput(post.mean(0), post.std(0, ddof=1), post,
+                                log_evidence=log_evidence)
     scores, pick = choose_radius(static, state[1], forecast, y, model, static.localization)
     post = jax.lax.switch(pick, [functools.partial(at, r) for r in static.radii])
     info = {"radius": jnp.asarray(static.radii, forecast.dtype)[pick]}
-    return (post, scores), StepOutput(post.mean(0), post.std(0, ddof=1), post, info)
+    return (post, scores), StepOutput(post.mean(0), post.std(0, ddof=1), post, info, log_evidence)
 
 
 def _check(model: StateSpaceModel, static: LETKFStatic) -> None:

@@ -42,6 +42,27 @@ class FilterResult(NamedTuple):
           (info None).
         * Every other filter (EnKF, LETKF, sharded LETKF, local CSF, local transform CSF, EnSF,
           SF, reference): None.
+      log_evidence: (K,) ``log p(y_k | y_1 .. y_{k-1})``, the data's log-likelihood one step at a
+        time (0 at a step without an observed entry; a partly missing observation counts its
+        observed entries), so ``log_evidence.sum()`` is ``log p(y_1 .. y_K)``; None from a
+        filter that does not estimate it. What each estimate is (``csf_jax.evidence``):
+
+        * the Kalman filter: exact;
+        * the EnKF and the LETKF: the innovation density ``N(y; mean, C + R)`` of the forecast
+          ensemble's predicted observations (sample covariance C), with the Gaussian stand-in of
+          non-Gaussian noise or a ``Likelihood``: an approximation, exact as N grows for a
+          linear-Gaussian model;
+        * the particle filter: the log of the mean likelihood of its propagated particles, whose
+          exponential is unbiased in ``p`` (the log is biased low);
+        * CSF with the mixture prior (the default): the evidence of its particle and ensemble
+          components, each one's prior weight times its importance-sampled evidence (the shock
+          components, a jump the model lacks, left out: the model's own likelihood);
+        * every other filter (CSF without the mixture, SF, EnSF, the local CSFs, the IEnKS, the
+          sharded filters, the reference filter): None.
+
+        The particle filter and CSF need the observation law's normalising constant
+        (``ObservationNoise.log_norm`` / ``Likelihood.log_norm``, which every constructor gives);
+        without it they return None. Steps from the first non-finite one on are NaN, like mean.
     """
 
     mean: jax.Array
@@ -50,6 +71,7 @@ class FilterResult(NamedTuple):
     ess: jax.Array | None = None
     finite: jax.Array | None = None
     info: dict | None = None
+    log_evidence: jax.Array | None = None
 
 
 def mark_nonfinite(result: FilterResult, obs) -> FilterResult:
@@ -72,5 +94,9 @@ def mark_nonfinite(result: FilterResult, obs) -> FilterResult:
           & jnp.isfinite(result.std).all(-1))
     finite = jnp.cumsum(~ok) == 0
     nan = jnp.asarray(jnp.nan, result.mean.dtype)
+    log_evidence = result.log_evidence
+    if log_evidence is not None:
+        log_evidence = jnp.where(finite, log_evidence, jnp.asarray(jnp.nan, log_evidence.dtype))
     return result._replace(mean=jnp.where(finite[:, None], result.mean, nan),
-                           std=jnp.where(finite[:, None], result.std, nan), finite=finite)
+                           std=jnp.where(finite[:, None], result.std, nan), finite=finite,
+                           log_evidence=log_evidence)

@@ -52,12 +52,12 @@ class LinearGaussian(NamedTuple):
     R: np.ndarray | None = None
 
     def process_cov(self) -> np.ndarray:
-        """``(d, d)``: ``Q``, or ``q_std^2 I``."""
-        return np.asarray(self.Q) if self.Q is not None else self.q_std ** 2 * np.eye(self.dim)
+        """``(d, d)``: ``Q``, or ``q_std^2 I`` (a jax array where they are traced)."""
+        return _matrix(self.Q) if self.Q is not None else self.q_std ** 2 * np.eye(self.dim)
 
     def obs_cov(self) -> np.ndarray:
-        """``(m, m)``: ``R``, or ``r_std^2 I``."""
-        return np.asarray(self.R) if self.R is not None else self.r_std ** 2 * np.eye(self.obs_dim)
+        """``(m, m)``: ``R``, or ``r_std^2 I`` (a jax array where they are traced)."""
+        return _matrix(self.R) if self.R is not None else self.r_std ** 2 * np.eye(self.obs_dim)
 
     @property
     def dim(self) -> int:
@@ -66,6 +66,11 @@ class LinearGaussian(NamedTuple):
     @property
     def obs_dim(self) -> int:
         return int(np.shape(self.H)[0])
+
+
+def _matrix(a):
+    """``a`` as a numpy array, or as it is where it is traced (a ``ParametricModel``'s)."""
+    return a if isinstance(a, jax.core.Tracer) else np.asarray(a)
 
 
 def rotation_decay(dim: int, radius: float = 0.95, angle: float = 0.3) -> np.ndarray:
