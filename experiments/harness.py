@@ -22,6 +22,9 @@
 * **Metrics** come from ``csf_jax.metrics``; **results** files share one schema (``SCHEMA``: the
   command, machine, versions and date, then one row per case and entry); **progress** is one line
   per batch on stderr.
+* **Pages.** ``publish`` and ``replace_section`` rewrite a page's generated block; its first line
+  is a hidden comment naming the command and a digest of the job's code (``made_by``,
+  ``job_digest``), which ``python -m experiments.regenerate --stale`` compares with the code now.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ import json
 import os
 import pathlib
 import platform
+import re
 import sys
 import time
 import types
@@ -51,6 +55,7 @@ from csf_jax import metrics, problems
 SCHEMA = "csf_jax.results/1"
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 LIBRARY = pathlib.Path(csf_jax.__file__).resolve().parent
+EXPERIMENTS = pathlib.Path(__file__).resolve().parent
 
 
 # ------------------------------------------------------------------------------------------------
@@ -297,6 +302,89 @@ def code_digest(*modules: str) -> str:
     for file in sorted(seen):
         digest.update(str(file.relative_to(LIBRARY)).encode() + source(file))
     return digest.hexdigest()[:16]
+
+
+def _package_file(name: str) -> pathlib.Path | None:
+    """The file of a dotted ``csf_jax`` or ``experiments`` module (the packages themselves
+    included), or None for any other name."""
+    top, *parts = name.split(".")
+    base = {"csf_jax": LIBRARY, "experiments": EXPERIMENTS}.get(top)
+    if base is None:
+        return None
+    base = base.joinpath(*parts)
+    for candidate in (base.with_suffix(".py"), base / "__init__.py"):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def _package_imports(path: pathlib.Path) -> set:
+    """The ``csf_jax`` and ``experiments`` modules a source file imports, anywhere in it (inside
+    functions too), as files."""
+    return _imports_in(source(path), LIBRARY, EXPERIMENTS)
+
+
+@functools.lru_cache(maxsize=1024)
+def _imports_in(text: bytes, library: pathlib.Path, experiments: pathlib.Path) -> frozenset:
+    """``_package_imports`` of a source text, with the packages at ``library`` and
+    ``experiments`` (cached by all three: a file is parsed once)."""
+    import ast
+
+    found = set()
+    for node in ast.walk(ast.parse(text)):
+        names = []
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+        found |= {f for f in map(_package_file, names) if f is not None}
+    return frozenset(found)
+
+
+@functools.cache
+def job_digest(*modules: str) -> str:
+    """A digest of the source of a job's ``modules`` (dotted names, ``experiments.zoo``) and of
+    every ``csf_jax`` and ``experiments`` module they import, transitively (``import csf_jax``
+    counts the package's ``__init__`` and so what it imports): the code that made a page's
+    generated block (``made_by``). 16 hex digits."""
+    todo = [_package_file(m) for m in modules]
+    missing = [m for m, f in zip(modules, todo) if f is None]
+    if missing:
+        raise ValueError(f"job_digest: no module {missing[0]!r} in csf_jax or experiments; "
+                         f"name a module as experiments.<job>")
+    seen: set = set()
+    while todo:
+        file = todo.pop()
+        if file not in seen:
+            seen.add(file)
+            todo.extend(_package_imports(file) - seen)
+    digest = hashlib.sha256()
+    for file in sorted(seen):
+        root = LIBRARY if file.is_relative_to(LIBRARY) else EXPERIMENTS
+        label = f"{root.name}/{file.relative_to(root).as_posix()}"
+        digest.update(label.encode() + b"\0" + source(file))
+    return digest.hexdigest()[:16]
+
+
+MADE_BY = re.compile(r"<!-- made by: (?P<command>.*); code (?P<code>[0-9a-f]{16}) -->")
+"""The first line of a generated block: the command that made it and its ``job_digest``."""
+
+
+def made_by(command: str | None = None) -> str | None:
+    """The line ``<!-- made by: COMMAND; code DIGEST -->`` for a block made by ``command``
+    (``python -m experiments.<job> ...``; DIGEST: ``job_digest`` of that module). Without a
+    command, the running job's, when Python runs one as ``python -m experiments.<job>``; None
+    when there is none (a test calling a job's ``main``)."""
+    if command is None:
+        spec = getattr(sys.modules.get("__main__"), "__spec__", None)
+        name = getattr(spec, "name", "") or ""
+        if not name.startswith("experiments."):
+            return None
+        command = " ".join([f"python -m {name}", *sys.argv[1:]])
+    found = re.match(r"python -m (experiments\.[\w.]+)", command)
+    if found is None:
+        return None
+    return f"<!-- made by: {command}; code {job_digest(found.group(1))} -->"
 
 
 def source(file: pathlib.Path) -> bytes:
@@ -564,13 +652,20 @@ def number(v, digits: int = 3) -> str:
 
 
 def replace_section(path, body: str, start: str = "<!-- results:start -->",
-                    end: str = "<!-- results:end -->") -> None:
-    """Replace the text between the markers of the page ``path`` with ``body``."""
-    text = pathlib.Path(path).read_text()
+                    end: str = "<!-- results:end -->", command: str | None = None) -> None:
+    """Replace the text between the markers of the page ``path`` with ``body``, after the line
+    ``made_by(command)`` (the command that made the block and the digest of its code; none when
+    no job is known). The page is rewritten atomically."""
+    path = pathlib.Path(path)
+    text = path.read_text()
     if start not in text or end not in text:
         raise SystemExit(f"{path} lacks the {start} / {end} markers")
     head, rest = text.split(start, 1)
-    pathlib.Path(path).write_text(f"{head}{start}\n{body}\n{end}{rest.split(end, 1)[1]}")
+    record = made_by(command)
+    inside = body if record is None else f"{record}\n{body}"
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(f"{head}{start}\n{inside}\n{end}{rest.split(end, 1)[1]}")
+    os.replace(tmp, path)
 
 
 def int_at_least(low: int):
@@ -677,13 +772,14 @@ def publish(args, record: dict, lines: list, filename: str = "results.json",
             tag: str | None = None) -> None:
     """Print a benchmark's generated block ``lines``; with ``--out``, write its results
     ``record`` there as ``filename``; with ``--page``, rewrite the page's block (markers
-    ``results:<tag>:start`` / ``:end``, or ``results:start`` / ``:end`` without a tag)."""
+    ``results:<tag>:start`` / ``:end``, or ``results:start`` / ``:end`` without a tag), the
+    record's command and the digest of its code on the block's first line (``made_by``)."""
     if args.out:
         write_results(pathlib.Path(args.out) / filename, record)
     if getattr(args, "page", None):
         name = "results" if tag is None else f"results:{tag}"
         replace_section(args.page, "\n".join(lines), f"<!-- {name}:start -->",
-                        f"<!-- {name}:end -->")
+                        f"<!-- {name}:end -->", record.get("command"))
     print("\n".join(lines))
 
 
