@@ -46,7 +46,8 @@ TABLE = os.path.join(ROOT, "results", "table", "results.json")
 
 # The pages whose Python snippets a user runs as they stand, and where on the page they start.
 RUNNABLE = {"README.md": "## Example", "docs/index.md": "## Example",
-            "docs/choosing.md": "## Check the choice"}
+            "docs/choosing.md": "## Check the choice",
+            "docs/fitting.md": "## Comparing two models on the same data"}
 # The commit at which the finished studies' code is kept, and the nav section that lists them.
 STUDIES_COMMIT = "cace770"
 STUDIES_SECTION = "Finished studies"
@@ -154,7 +155,7 @@ def test_readme_example_runs(tmp_path):
     assert _agrees(quoted, figures["paper"]), (quoted, figures)
 
 
-@pytest.mark.parametrize("page", ["docs/index.md", "docs/choosing.md"])
+@pytest.mark.parametrize("page", ["docs/index.md", "docs/choosing.md", "docs/fitting.md"])
 def test_page_snippets_run(page, tmp_path):
     out = _run_as_user(_runnable(page), tmp_path)
     assert "RMSE" in out or re.search(r"\d\.\d", out), out
