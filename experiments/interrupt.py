@@ -99,4 +99,7 @@ def run(args, **kwargs) -> subprocess.CompletedProcess:
         if child.poll() is None:
             child.kill()
             child.wait()
-    return subprocess.CompletedProcess(child.args, child.returncode, out, err)
+    # an interrupt kills the child while holding WRITING and then ends this process (status
+    # 130): wait for it here, or the caller would go on with a killed child's status first
+    with WRITING:
+        return subprocess.CompletedProcess(child.args, child.returncode, out, err)

@@ -284,11 +284,7 @@ def duration(seconds: float) -> str:
 def run_job(j: Job) -> int:
     """Run ``j`` in the repository root (its output on this terminal); its exit status."""
     env = {**os.environ, **j.env}
-    code = interrupt.run([sys.executable, *j.argv], cwd=ROOT, env=env).returncode
-    # A Ctrl-C kills the child while holding WRITING, then ends this process (status 130):
-    # wait for that here, or this thread would record the killed job as failed and exit first.
-    with interrupt.WRITING:
-        return code
+    return interrupt.run([sys.executable, *j.argv], cwd=ROOT, env=env).returncode
 
 
 def columns(rows: list) -> list:
