@@ -155,6 +155,8 @@ JOBS = (
         results=["results/bench/results_kalman_L20.json"]),
     job("bench_clipped", "bench", "--guidance", "clipped", "--steps", "500", *CPU_BENCH,
         blocks=[(BENCH, "clipped_L500")], results=["results/bench/results_clipped_L500.json"]),
+    job("profile", "profile", *_outputs("results/profile", BENCH), blocks=[(BENCH, "profile")],
+        results=["results/profile/results.json"]),
     job("lorenz96_scaling_gpu", "lorenz96_scaling", *_outputs("results/lorenz96", L96),
         blocks=[(L96, "scaling_gpu")], results=["results/lorenz96/scaling_gpu.json"], gpu=True),
     job("bench_kalman_gpu", "bench", "--dims", "1,10", "--device", "cuda", "--compile-mode",
