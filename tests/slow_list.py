@@ -1,9 +1,10 @@
 """Writes ``tests/slow_tests.txt``: the tests the default run leaves to ``-m slow`` so that it stays
 under 10 minutes on the CI machine (2 cores). A test goes there when its setup, call and teardown
 took ``THRESHOLD`` seconds or more in a full default run, except ``KEPT``: the closed-form checks
-of CSF and of the reference against the Kalman filter, the API's bad-input errors, the README's
-example and the transform CSF's default radius switch against the LETKF, which the default run
-keeps whatever they cost.
+of CSF (its filter and its log evidence) and of the reference against the Kalman filter, the
+API's bad-input errors, the README's example, ``jax.jit`` of ``csf_jax.filter`` as a user writes
+it and the transform CSF's default radius switch against the LETKF, which the default run keeps
+whatever they cost.
 
     python -m pytest -q --durations=0 -p no:cacheprovider > durations.log
     python tests/slow_list.py durations.log
@@ -21,7 +22,9 @@ KEPT = ("tests/test_csf.py::test_gaussian_prior_csf_tracks_kalman",
         "tests/test_csf.py::test_bad_inputs_raise_clear_errors",
         "tests/test_reference.py::test_matches_kalman_on_a_separable_linear_gaussian_model",
         "tests/test_docs.py::test_readme_example_runs",
-        "tests/test_local_transform.py::test_far_steps_are_analysed_at_the_far_radius")
+        "tests/test_local_transform.py::test_far_steps_are_analysed_at_the_far_radius",
+        "tests/test_evidence.py::test_csf_evidence_near_the_exact_likelihood",
+        "tests/test_user_calls.py::test_jit_of_csf_filter_equals_the_plain_call")
 LIST = pathlib.Path(__file__).with_name("slow_tests.txt")
 LINE = re.compile(r"^\s*([0-9.]+)s (?:setup|call|teardown)\s+(\S.*?)\s*$")
 
