@@ -92,6 +92,9 @@ class Kernel(NamedTuple):
       LETKF places its arrays on a device mesh); ``run`` hands the call over whole.
     parametric: optional, the kernel that runs in its place on a ``ParametricModel``: the same
       filter with what ``jax.grad`` needs added (the particle filter's resampling score).
+    bind_checks: ``bind`` only checks the model (it changes nothing the scan reads: the LETKF's
+      localisation against the sensor), so the kernel filters a ``ParametricModel`` too; a
+      ``bind`` that reads the model's numbers (CSF's trained prior) cannot.
     """
 
     name: str
@@ -103,6 +106,7 @@ class Kernel(NamedTuple):
     bind: Callable[..., tuple] | None = None
     runner: Callable[..., FilterResult] | None = None
     parametric: Kernel | None = None
+    bind_checks: bool = False
 
 
 @functools.partial(jax.tree_util.register_dataclass, data_fields=["params"],
@@ -227,49 +231,20 @@ def run_kernel(method: Kernel, obs, state0, *, model: StateSpaceModel, key, conf
                                return_ensembles, check_finite, progress)
     if method.bind is not None:
         model, config, params, state0 = method.bind(model, config, params, state0)
-    check_model(model, name)
-    if method.ensemble:
-        _checks.check_filter_inputs(obs, state0, model, name=name)
-    else:
-        _checks.check_obs(obs, model, name=name)
-    _checks.check_key(key, name=name)
-    _checks.check_inputs(inputs, jnp.shape(obs)[0], model, name=name)
-    method.check(model, config)
-    obs, state0 = _checks.promote_tree(obs, state0)
-    check_covariances(model, obs.dtype, name)
-    check_dynamics(model, obs.dtype, inputs, name)
+    obs, state0 = _checked(method, model, config, obs, state0, key, inputs)
     static = (method, model, config, bool(return_ensembles), progress)
     args = (params, obs, state0, key, inputs)
     if progress is not None:
         _announce_compile(static, args)
-    result = mark_nonfinite(_scan(*static, *args), obs)
-    warn_if_collapsed(name, result.ess)
-    if check_finite:
-        _checks.check_result_finite(name, result)
-    return result
+    return _finished(name, mark_nonfinite(_scan(*static, *args), obs), check_finite)
 
 
-# The kernels whose ``bind`` only checks the model (it changes nothing the scan reads), so they
-# filter a ``ParametricModel`` too; another bind (CSF's trained prior) reads the model's numbers.
-_CHECKING_BINDS = frozenset({"letkf"})
-
-
-def _run_parametric(method: Kernel, obs, state0, pm: ParametricModel, key, config, params,
-                    inputs, return_ensembles: bool, check_finite: bool, progress) -> FilterResult:
-    """``run_kernel`` of a ``ParametricModel``: the checks on ``build(theta)`` (all of them when
-    ``theta`` is concrete; the structure and the shapes of ``obs`` and ``state0`` when traced),
-    then ``_scan_parametric``, which builds the model inside the trace."""
+def _checked(method: Kernel, model, config, obs, state0, key, inputs, values: bool = True):
+    """The boundary's checks of a run (the module docstring), and ``(obs, state0)`` promoted to
+    their float dtype. ``values`` False (a ``ParametricModel`` whose ``theta`` is traced): the
+    model's structure and the arrays' shapes only, not its numbers nor its maps' outputs."""
     name = method.name
-    if method.bind is not None and method.name not in _CHECKING_BINDS:
-        raise TypeError(f"{name}: takes no csf_jax.ParametricModel (its setup reads the model's "
-                        f"numbers before the scan); pass build(theta), or use "
-                        f"csf_jax.methods.enkf() or csf_jax.methods.pf()")
-    method = method.parametric or method
-    concrete = _checks.is_concrete(pm.theta)
-    model = checkable_model(pm.build(pm.theta), name)
-    if method.bind is not None:
-        method.bind(model, config, params, state0)
-    if concrete:
+    if values:
         check_model(model, name)
     if method.ensemble:
         _checks.check_filter_inputs(obs, state0, model, name=name)
@@ -279,18 +254,42 @@ def _run_parametric(method: Kernel, obs, state0, pm: ParametricModel, key, confi
     _checks.check_inputs(inputs, jnp.shape(obs)[0], model, name=name)
     method.check(model, config)
     obs, state0 = _checks.promote_tree(obs, state0)
-    if concrete:
+    if values:
         check_covariances(model, obs.dtype, name)
         check_dynamics(model, obs.dtype, inputs, name)
-    static = (method, pm.build, config, bool(return_ensembles), progress)
-    args = (pm.theta, params, obs, state0, key, inputs)
-    if progress is not None:
-        _announce_compile(static, args, _scan_parametric, model.dim)
-    result = mark_nonfinite(_scan_parametric(*static, *args), obs)
+    return obs, state0
+
+
+def _finished(name: str, result: FilterResult, check_finite: bool) -> FilterResult:
+    """A concrete run's result after its warning (collapsed weights) and, with
+    ``check_finite``, its FloatingPointError (a diverged run)."""
     warn_if_collapsed(name, result.ess)
     if check_finite:
         _checks.check_result_finite(name, result)
     return result
+
+
+def _run_parametric(method: Kernel, obs, state0, pm: ParametricModel, key, config, params,
+                    inputs, return_ensembles: bool, check_finite: bool, progress) -> FilterResult:
+    """``run_kernel`` of a ``ParametricModel``: the checks on ``build(theta)`` (all of them when
+    ``theta`` is concrete; the structure and the shapes of ``obs`` and ``state0`` when traced),
+    then ``_scan_parametric``, which builds the model inside the trace."""
+    name = method.name
+    if method.bind is not None and not method.bind_checks:
+        raise TypeError(f"{name}: takes no csf_jax.ParametricModel (its setup reads the model's "
+                        f"numbers before the scan); pass build(theta), or use "
+                        f"csf_jax.methods.enkf() or csf_jax.methods.pf()")
+    method = method.parametric or method
+    model = checkable_model(pm.build(pm.theta), name)
+    if method.bind is not None:
+        method.bind(model, config, params, state0)
+    obs, state0 = _checked(method, model, config, obs, state0, key, inputs,
+                           values=_checks.is_concrete(pm.theta))
+    static = (method, pm.build, config, bool(return_ensembles), progress)
+    args = (pm.theta, params, obs, state0, key, inputs)
+    if progress is not None:
+        _announce_compile(static, args, _scan_parametric, model.dim)
+    return _finished(name, mark_nonfinite(_scan_parametric(*static, *args), obs), check_finite)
 
 
 COLLAPSED_ESS = 1.5

@@ -556,7 +556,7 @@ def method(localization: Localization | None = None, config: LETKFConfig = LETKF
     localization = require_localization(localization, "letkf")
     if not isinstance(config, LETKFConfig):
         raise TypeError(f"letkf: config must be a LETKFConfig, got {type(config).__name__}")
-    return Method(LETKF._replace(bind=_bind),
+    return Method(LETKF._replace(bind=_bind, bind_checks=True),
                   LETKFStatic(float(config.radius), localization, float(config.adaptive),
                               tuple(float(r) for r in config.radii)),
                   jnp.asarray(config.inflation))
