@@ -7,13 +7,10 @@ the sampler's scans, which deadlocked XLA's CPU runtime under jax 0.10.2 (every 
 asleep and the result never ready, with ``--xla_cpu_enable_concurrency_optimized_scheduler`` on
 and off; gone with these functions; the reproduction is on docs/design.md).
 
-Two forms with the same arithmetic up to rounding: up to ``UNROLL_MAX`` columns, the column steps
-unrolled in Python; above it, a ``lax.fori_loop`` over columns, whose program (and so compile
-time) is the same for every d. Unrolled, the program grows with d and its compile time faster
-than d^2, so above ``UNROLL_MAX`` the loops compile far sooner (measured on docs/bench/history.md,
-"Compile time against d"). The unrolled form is kept up to d = 20 because the committed results
-of the paper's problems (d <= 20) were computed with it: with the loops they would change by
-rounding differences, which grow along a filter run (docs/bench/history.md).
+Each is a ``lax.fori_loop`` over columns (entries, for the solves), whose program, and so compile
+time, is the same for every d. Unrolled in Python the program grows with d and its compile time
+faster than d^2: at d = 20 the filter step compiled in over a minute with the columns unrolled
+and is no faster per step (docs/bench/history.md, "Compile time against d").
 """
 
 
@@ -25,7 +22,6 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-UNROLL_MAX = 20
 PRECISION = "highest"
 
 
@@ -54,8 +50,6 @@ def cholesky(a):
     columns after j still zero.
     """
     d = a.shape[-1]
-    if d <= UNROLL_MAX:
-        return _cholesky_unrolled(a)
     below = jnp.arange(d)
 
     def column(j, l):
@@ -91,8 +85,6 @@ def _substitute(l, b, transposed: bool):
     """Forward substitution ``l x = b`` (back substitution ``l^T x = b`` if ``transposed``), one
     entry of ``x`` per step, the entries not yet solved still zero."""
     d = l.shape[-1]
-    if d <= UNROLL_MAX:
-        return _substitute_unrolled(l, b, transposed)
     b = jnp.broadcast_to(b, jnp.broadcast_shapes(b.shape, l.shape[:-1]))
 
     def entry(i, x):
@@ -106,27 +98,3 @@ def _substitute(l, b, transposed: bool):
     return lax.fori_loop(0, d, entry, jnp.zeros_like(b))
 
 
-
-def _cholesky_unrolled(a):
-    """``cholesky`` with the d column steps unrolled."""
-    d = a.shape[-1]
-    cols = []
-    for j in range(d):
-        prev = jnp.stack(cols, -1) if cols else jnp.zeros(a.shape[:-1] + (0,), a.dtype)  # (..., d, j)
-        col = a[..., :, j] - jnp.einsum("...ik,...k->...i", prev, prev[..., j, :])
-        pivot = jnp.sqrt(col[..., j])
-        col = jnp.where(jnp.arange(d) >= j, col / pivot[..., None], 0.0)
-        cols.append(col)
-    return jnp.stack(cols, -1)
-
-
-def _substitute_unrolled(l, b, transposed: bool):
-    """``_substitute`` with the d entries unrolled."""
-    d = l.shape[-1]
-    xs = [None] * d
-    for j in (reversed(range(d)) if transposed else range(d)):
-        done = range(j + 1, d) if transposed else range(j)
-        coef = (lambda k: l[..., k, j]) if transposed else (lambda k: l[..., j, k])
-        acc = b[..., j] - sum(coef(k) * xs[k] for k in done) if len(done) else b[..., j]
-        xs[j] = acc / l[..., j, j]
-    return jnp.stack(xs, -1)

@@ -164,17 +164,15 @@ def kalman_tweedie(x0_hat, prior_precision, loglik_fn, observe_fn, weight_fn, u_
             jac, jnp.where(jnp.isfinite(weight), weight, 0.0)))
         return chol, precision @ (x0h - u) + guide * jnp.where(jnp.isfinite(grad), grad, 0.0)
 
-    def objective(x0h, u, precision):
-        diff = u - x0h
-        return -0.5 * diff @ precision @ diff + guide * loglik_fn(u)
-
     def one(x0h, u, precision):
         for _ in range(iterations):
             chol, rhs = system(x0h, u, precision)
             step = _linalg.cho_solve(chol, rhs)
             if damped:
-                tries = u + jnp.asarray(DAMPING, u.dtype)[:, None] * step
-                values = jax.vmap(lambda v: objective(x0h, v, precision))(tries)
+                fractions = jnp.asarray(DAMPING, u.dtype)
+                tries = u + fractions[:, None] * step
+                values = (-0.5 * quadratic_along(precision, u - x0h, step, fractions)
+                          + guide * jax.vmap(loglik_fn)(tries))
                 u = tries[jnp.argmax(jnp.where(jnp.isnan(values), -jnp.inf, values))]
             else:
                 u = u + step
@@ -182,11 +180,40 @@ def kalman_tweedie(x0_hat, prior_precision, loglik_fn, observe_fn, weight_fn, u_
             chol, _ = system(x0h, u, precision)
         return u, chol
 
-    shared = prior_precision.ndim == 2
-    return jax.vmap(one, in_axes=(0, 0, None if shared else 0))(x0_hat, u_init, prior_precision)
+    if prior_precision.ndim == 2:
+        return particle_map(lambda xs: one(*xs, prior_precision), (x0_hat, u_init))
+    return particle_map(lambda xs: one(*xs), (x0_hat, u_init, prior_precision))
+
+
+PARTICLE_BLOCK = 200
+
+
+def particle_map(fn, xs):
+    """``fn`` over the leading (particle) axis of the pytree ``xs``, ``PARTICLE_BLOCK``
+    particles at a time (``lax.map`` of a ``vmap``): the per-particle (d, d) Gauss-Newton
+    systems of a block stay in the CPU's caches through a step's factorisations and solves,
+    where one ``vmap`` over all N streams every particle's matrices through memory at each of
+    them (docs/benchmark.md, "Where CSF's step spends its time"). The results are the
+    per-particle ones, up to rounding. On an accelerator, one vmap: there the blocks would run
+    one after another."""
+    n = jax.tree_util.tree_leaves(xs)[0].shape[0]
+    if jax.default_backend() != "cpu" or n <= PARTICLE_BLOCK:
+        return jax.vmap(fn)(xs)
+    return jax.lax.map(fn, xs, batch_size=PARTICLE_BLOCK)
 
 
 DAMPING = tuple(0.5 ** k for k in range(13)) + (0.0,)
+
+
+def quadratic_along(matrix, point, direction, fractions):
+    """``(p + a v)^T M (p + a v)`` at each of ``fractions (S,)`` (``a``), for a symmetric
+    ``matrix (d, d)`` (M; None: the identity), ``point (d,)`` (p) and ``direction (d,)`` (v):
+    a line search's quadratic term as ``p^T M p + 2 a v^T M p + a^2 v^T M v``, two
+    matrix-vector products in place of one per fraction (S = 14 to 20 of them, most of the
+    search's arithmetic)."""
+    mp = point if matrix is None else matrix @ point
+    mv = direction if matrix is None else matrix @ direction
+    return point @ mp + fractions * (2.0 * (direction @ mp) + fractions * (direction @ mv))
 
 
 def _weighted_gram(jac, weight):
@@ -225,11 +252,18 @@ def importance_weights(key, mean, precision, u, chol, loglik_fn, guide, proposal
     else:
         z = student_t(k_draw, df, (proposals, n, d), u.dtype)
         log_q = -0.5 * (df + 1.0) * jnp.sum(jnp.log1p(z * z / df), -1)
-    cand = u + _linalg.solve_lower_transposed(chol, z)
-    diff = cand - mean
-    spec = "knd,de,kne->kn" if precision.ndim == 2 else "knd,nde,kne->kn"
-    log_w = (-0.5 * jnp.einsum(spec, diff, precision, diff)
-             + guide * jax.vmap(jax.vmap(loglik_fn))(cand) - log_q)
+    def row(zn, un, cn, mn, pn):  # one row's K candidates: (K, d), (K,), (K,)
+        cand = un + _linalg.solve_lower_transposed(cn, zn)
+        diff = cand - mn
+        return cand, jnp.einsum("kd,de,ke->k", diff, pn, diff), jax.vmap(loglik_fn)(cand)
+
+    rows = (jnp.swapaxes(z, 0, 1), u, chol, jnp.broadcast_to(mean, u.shape))
+    if precision.ndim == 2:
+        cand, quad, loglik = particle_map(lambda xs: row(*xs, precision), rows)
+    else:
+        cand, quad, loglik = particle_map(lambda xs: row(*xs), rows + (precision,))
+    cand, quad, loglik = jnp.swapaxes(cand, 0, 1), quad.T, loglik.T
+    log_w = -0.5 * quad + guide * loglik - log_q
     if normalized:  # log N(c; mean, P) and log N(c; u, A^{-1}) in full
         log_w = (log_w + 0.5 * _log_det(precision)
                  - jnp.sum(jnp.log(jnp.diagonal(chol, axis1=-2, axis2=-1)), -1))

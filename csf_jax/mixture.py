@@ -64,7 +64,7 @@ import jax.numpy as jnp
 from jax.scipy.special import logsumexp
 
 from csf_jax import _checks, _linalg
-from csf_jax.guidance import importance_weights, kalman_tweedie
+from csf_jax.guidance import importance_weights, kalman_tweedie, quadratic_along
 from csf_jax.sde import SIGMA_MAX, marginal_std_host, noise_levels
 from csf_jax.ssm import (
     StateSpaceModel,
@@ -375,26 +375,33 @@ def select(model: StateSpaceModel, config: MixtureConfig, key, y, centers, prior
     if shocks:
         # a shock member: importance resampling from its component's Laplace proposal (``proposals``
         # candidates of its own); the reverse-diffusion sampler is left to the ensemble component
-        g = jnp.clip(kind - 1, 0, inflation.shape[0] - 1)
-        cand, log_wc = importance_weights(
-            k_shock, jnp.broadcast_to(mean, (n, d)), precisions[g], u_ens[g, 0], chol_ens[g, 0],
-            lambda x: log_likelihood(model, y, x), guide, config.proposals, tail_df(model))
-        log_wc = jnp.where(jnp.isnan(log_wc), -jnp.inf, log_wc)
-        pick = jax.random.categorical(jax.random.fold_in(k_shock, 1), log_wc, axis=0)
-        shock_draws = jnp.take_along_axis(cand, pick[None, :, None], axis=0)[0]
-        draws = jnp.where((kind > 1)[:, None], shock_draws, draws)
+        def shock_draws(draws):
+            g = jnp.clip(kind - 1, 0, inflation.shape[0] - 1)
+            cand, log_wc = importance_weights(
+                k_shock, jnp.broadcast_to(mean, (n, d)), precisions[g], u_ens[g, 0],
+                chol_ens[g, 0], lambda x: log_likelihood(model, y, x), guide, config.proposals,
+                tail_df(model))
+            log_wc = jnp.where(jnp.isnan(log_wc), -jnp.inf, log_wc)
+            pick = jax.random.categorical(jax.random.fold_in(k_shock, 1), log_wc, axis=0)
+            picked = jnp.take_along_axis(cand, pick[None, :, None], axis=0)[0]
+            return jnp.where((kind > 1)[:, None], picked, draws)
+
+        draws = where_any(kind > 1, shock_draws, draws)
     if transport:
         # the members moved are a random subset: the systematic resampling orders the members by
         # component, so a fixed block of positions would move the same members step after step,
         # last step's shock members among them (the transport keeps an outlier an outlier)
-        chosen = prior_ens[jax.random.permutation(jax.random.fold_in(k_res, 1), n)]
-        if config.transport_levels > 0:
-            moved = flow_transport(chosen, cov, u_ens[0, 0], chol_ens[0, 0], precisions[0],
-                                   lambda x: guide * log_likelihood(model, y, x),
-                                   transport_levels(config), config.transport_iterations)
-        else:
-            moved = gaussian_transport(chosen, cov, u_ens[0, 0], chol_ens[0, 0])
-        draws = jnp.where((kind == 1)[:, None], moved, draws)
+        def transported(draws):
+            chosen = prior_ens[jax.random.permutation(jax.random.fold_in(k_res, 1), n)]
+            if config.transport_levels > 0:
+                moved = flow_transport(chosen, cov, u_ens[0, 0], chol_ens[0, 0], precisions[0],
+                                       lambda x: guide * log_likelihood(model, y, x),
+                                       transport_levels(config), config.transport_iterations)
+            else:
+                moved = gaussian_transport(chosen, cov, u_ens[0, 0], chol_ens[0, 0])
+            return jnp.where((kind == 1)[:, None], moved, draws)
+
+        draws = where_any(kind == 1, transported, draws)
     log_bf = jnp.where(informed & jnp.isfinite(log_bf), log_bf, 0.0)
     # without evidence the posterior is the prior, and the propagated members are exact draws of
     # it (module docstring)
@@ -409,6 +416,15 @@ def select(model: StateSpaceModel, config: MixtureConfig, key, y, centers, prior
         informed, calm + proposal_constant(d, tail_df(model), dtype) + const.astype(dtype), 0.0)
     return Selection(kind, draws, inflation, log_bf, particle_weight, shock_weight, informed,
                      log_evidence)
+
+
+def where_any(rows, fill, draws):
+    """``fill(draws)`` where any of ``rows (N,)`` is set, else ``draws (N, d)`` as they are:
+    ``fill`` replaces the set rows (a shock or transported member's draw), and most steps have
+    none of a kind (no shock member at all on a model without jumps), so its work (importance
+    draws for every member, a flow over ten noise levels) is skipped there. Under ``jax.vmap``
+    both branches run and the result is the same."""
+    return jax.lax.cond(jnp.any(rows), fill, lambda x: x, draws)
 
 
 def proposal_constant(d: int, df: int | None, dtype) -> jax.Array:
@@ -505,29 +521,27 @@ def flow_transport(prior_ens, cov, u, chol, prior_prec, loglik, levels, iteratio
     p = precision(a_z)
     b_z = lower.T @ prior_prec @ lower                                      # B_z^{-1}
     z_star = _linalg.solve_lower(lower, (u - mean)[None])[0]
-    damping = jnp.asarray(TRANSPORT_STEPS, dtype)[:, None]
-
-    def log_post(z):
-        value = -0.5 * z @ b_z @ z + loglik(mean + lower @ z)
-        return jnp.where(jnp.isnan(value), -jnp.inf, value)
+    fractions = jnp.asarray(TRANSPORT_STEPS, dtype)
 
     def grad(z):
         g = jax.grad(loglik)(mean + lower @ z)
         return -b_z @ z + lower.T @ jnp.where(jnp.isfinite(g), g, 0.0)
 
-    def best(tries, values):
-        return tries[jnp.argmax(values)]
-
-    def objective(t, z, s):
-        return log_post(t) - jnp.sum((t - z) ** 2) / (2.0 * s ** 2)
+    def search(t, direction, extra=0.0):
+        # the log posterior (plus ``extra (S,)``) at t + a direction for each step fraction a, its
+        # quadratic term in closed form along the line and the likelihood at mean + lower (...)
+        x = (mean + lower @ t) + fractions[:, None] * (lower @ direction)
+        value = (-0.5 * quadratic_along(b_z, t, direction, fractions) + jax.vmap(loglik)(x)
+                 + extra)
+        return t + fractions[jnp.argmax(jnp.where(jnp.isnan(value), -jnp.inf, value))] * direction
 
     def tweedie(t, z, s, solve):
-        tries = t + damping * ((grad(t) - (t - z) / s ** 2) @ solve)
-        return best(tries, jax.vmap(objective, in_axes=(0, None, None))(tries, z, s))
+        direction = (grad(t) - (t - z) / s ** 2) @ solve
+        return search(t, direction,
+                      -quadratic_along(None, t - z, direction, fractions) / (2.0 * s ** 2))
 
     def centre(t):
-        tries = t + damping * (grad(t) @ p)
-        return best(tries, jax.vmap(log_post)(tries))
+        return search(t, grad(t) @ p)
 
     def sqrtm(a):
         return a @ inverse_sqrt(a)

@@ -5,6 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from csf_jax import guidance
 from csf_jax.guidance import GuidanceConfig, dps_gradient, guidance_displacement
 from csf_jax.prior import mixture_score
 
@@ -195,3 +196,29 @@ def test_student_t_draws_have_the_t_quantiles():
     np.testing.assert_allclose(np.quantile(z1, p), np.tan(np.pi * (p - 0.5)), rtol=0.03)
     z3 = np.asarray(student_t(jax.random.key(2), 3, (200000,), jnp.float32))
     np.testing.assert_allclose(np.quantile(z3, [0.9, 0.975]), [1.6377, 3.1824], rtol=0.03)
+
+
+def test_quadratic_along_is_the_quadratic_form_at_each_fraction(x64):
+    """The line searches' closed form against the form evaluated at each point, for a symmetric
+    matrix and for the identity (None)."""
+    rng = np.random.default_rng(0)
+    a = rng.standard_normal((5, 5))
+    m = a @ a.T + np.eye(5)
+    p, v = rng.standard_normal(5), rng.standard_normal(5)
+    fractions = np.asarray(guidance.DAMPING)
+    want = np.array([(p + f * v) @ m @ (p + f * v) for f in fractions])
+    np.testing.assert_allclose(guidance.quadratic_along(m, p, v, fractions), want, rtol=1e-12)
+    want = np.array([(p + f * v) @ (p + f * v) for f in fractions])
+    np.testing.assert_allclose(guidance.quadratic_along(None, p, v, fractions), want, rtol=1e-12)
+
+
+def test_particle_map_in_blocks_is_the_vmap(x64, monkeypatch):
+    """Blocks of particles (with a remainder) give each particle's own result."""
+    monkeypatch.setattr(guidance, "PARTICLE_BLOCK", 4)
+    xs = (jnp.arange(22.0).reshape(11, 2), jnp.ones((11, 2, 2)))
+    fn = lambda x: (x[1] @ x[0], jnp.sum(x[0] ** 2))
+    got = guidance.particle_map(fn, xs)
+    want = jax.vmap(fn)(xs)
+    for g, w in zip(got, want):
+        np.testing.assert_array_equal(g, w)
+    assert "while" in jax.jit(lambda xs: guidance.particle_map(fn, xs)).lower(xs).as_text()

@@ -1,5 +1,4 @@
-"""The plain-jnp Cholesky and triangular solves against numpy (float64), batched, in both forms:
-unrolled (d <= UNROLL_MAX) and as loops over columns."""
+"""The plain-jnp Cholesky and triangular solves against numpy (float64), batched."""
 
 import jax
 import numpy as np
@@ -14,7 +13,7 @@ def _spd(seed, batch, d):
 
 
 def test_cholesky_and_solves_match_numpy(x64):
-    for d in (1, 3, 12, _linalg.UNROLL_MAX + 5):
+    for d in (1, 3, 12, 25):
         a = _spd(d, 4, d)
         b = np.random.default_rng(d + 1).standard_normal((4, d))
         l = np.asarray(_linalg.cholesky(a))
@@ -34,7 +33,7 @@ def test_cholesky_under_vmap_and_jit(x64):
     np.testing.assert_allclose(got, np.linalg.cholesky(a), rtol=1e-10, atol=1e-12)
 
 
-@pytest.mark.parametrize("d", [6, _linalg.UNROLL_MAX + 3])
+@pytest.mark.parametrize("d", [6, 23])
 def test_broadcast_right_hand_sides(x64, d):
     """Candidates ``(K, N, d)`` against factors ``(N, d, d)``, and one ``(d,)`` against many."""
     a = _spd(3, 4, d)
@@ -48,13 +47,12 @@ def test_broadcast_right_hand_sides(x64, d):
 
 
 def test_program_size_does_not_grow_with_d():
-    """Above UNROLL_MAX the factorisation and the solves are loops over columns: the same program
-    for every d, so compile time is flat in d (unrolled, the solves grow as d^2 operations)."""
+    """The factorisation and the solves are loops over columns: the same program for every d, so
+    compile time is flat in d (unrolled, the solves would grow as d^2 operations)."""
     def size(d):
         a = np.eye(d, dtype=np.float32)[None]
         text = jax.jit(lambda a, b: _linalg.cho_solve(_linalg.cholesky(a), b)).lower(
             a, np.ones((1, d), np.float32)).as_text()
         return len([line for line in text.splitlines() if "=" in line])
 
-    assert size(_linalg.UNROLL_MAX + 1) == size(4 * _linalg.UNROLL_MAX)
-    assert size(_linalg.UNROLL_MAX) > size(8)
+    assert size(2) == size(20) == size(80)

@@ -592,3 +592,15 @@ def test_the_transport_moves_a_random_subset_of_the_members_and_skips_the_sample
     match = dist.argmin(1)
     assert np.all(dist.min(1) < 1e-6) and len(set(match.tolist())) == len(match)
     assert not np.array_equal(match, np.arange(len(match)))                    # shuffled
+
+
+def test_where_any_fills_only_where_a_row_is_set_and_vmaps():
+    """The shock and transport fills run where a member of their kind exists, and leave the draws
+    as they are elsewhere; batched over runs (where both branches run) the result is the same."""
+    draws = jnp.arange(6.0).reshape(3, 2)
+    fill = lambda d: jnp.where(jnp.array([True, False, True])[:, None], -d, d)
+    np.testing.assert_array_equal(mixture.where_any(jnp.zeros(3, bool), fill, draws), draws)
+    np.testing.assert_array_equal(mixture.where_any(jnp.ones(3, bool), fill, draws), fill(draws))
+    rows = jnp.array([[False] * 3, [True] * 3])
+    got = jax.vmap(lambda r: mixture.where_any(r, fill, draws))(rows)
+    np.testing.assert_array_equal(got, jnp.stack([draws, fill(draws)]))

@@ -421,8 +421,9 @@ def _step(model: StateSpaceModel, static: CSFStatic, params, state, y, key, time
                          moments.cov, jnp.square(start.tau), odds, guide, transport)
     post = sel.draws
     if not transport:
-        post = jnp.where((sel.kind == 1)[:, None],
-                         sample(params, context, y, x_init, start, k_rev, guide), post)
+        post = mixture.where_any(sel.kind == 1, lambda post: jnp.where(
+            (sel.kind == 1)[:, None], sample(params, context, y, x_init, start, k_rev, guide),
+            post), post)
     memory, _ = mixture.next_odds(config.prior.mixture, memory, sel.log_bf, sel.informed)
     info = {"particle_weight": sel.particle_weight, "shock_weight": sel.shock_weight}
     kept = jnp.all(jnp.isfinite(prior_ens)) & jnp.all(jnp.isfinite(moments.cov))
