@@ -64,6 +64,7 @@ import jax.numpy as jnp
 from jax.scipy.special import logsumexp
 
 from csf_jax import _checks, _linalg
+from csf_jax._batch import batch_max
 from csf_jax.guidance import importance_weights, kalman_tweedie, quadratic_along
 from csf_jax.sde import SIGMA_MAX, marginal_std_host, noise_levels
 from csf_jax.ssm import (
@@ -78,6 +79,8 @@ from csf_jax.ssm import (
 
 ENSEMBLE_DRAWS = ("transport", "sampler")
 NEWTON_SCHULZ_STEPS = 32
+ROW_BLOCK = 4                 # fill_rows' block: N // 4 members (row_block)
+MIN_ROW_BLOCK = 16
 # the transport's line search: the step fractions tried along each Gauss-Newton direction, from
 # 64 full steps (where the sensor is flatter than at the mode, the mode's curvature makes the
 # step short) down to 2^-12 (where it is steeper, long), and 0
@@ -373,35 +376,11 @@ def select(model: StateSpaceModel, config: MixtureConfig, key, y, centers, prior
     shock_weight = jnp.sum(weights[n_part + 1:])
     draws = draws[jnp.clip(idx, 0, max(n_part, 1) - 1)]
     if shocks:
-        # a shock member: importance resampling from its component's Laplace proposal (``proposals``
-        # candidates of its own); the reverse-diffusion sampler is left to the ensemble component
-        def shock_draws(draws):
-            g = jnp.clip(kind - 1, 0, inflation.shape[0] - 1)
-            cand, log_wc = importance_weights(
-                k_shock, jnp.broadcast_to(mean, (n, d)), precisions[g], u_ens[g, 0],
-                chol_ens[g, 0], lambda x: log_likelihood(model, y, x), guide, config.proposals,
-                tail_df(model))
-            log_wc = jnp.where(jnp.isnan(log_wc), -jnp.inf, log_wc)
-            pick = jax.random.categorical(jax.random.fold_in(k_shock, 1), log_wc, axis=0)
-            picked = jnp.take_along_axis(cand, pick[None, :, None], axis=0)[0]
-            return jnp.where((kind > 1)[:, None], picked, draws)
-
-        draws = where_any(kind > 1, shock_draws, draws)
+        draws = shock_draws(model, config, k_shock, y, mean, precisions, u_ens[:, 0],
+                            chol_ens[:, 0], kind, draws, guide)
     if transport:
-        # the members moved are a random subset: the systematic resampling orders the members by
-        # component, so a fixed block of positions would move the same members step after step,
-        # last step's shock members among them (the transport keeps an outlier an outlier)
-        def transported(draws):
-            chosen = prior_ens[jax.random.permutation(jax.random.fold_in(k_res, 1), n)]
-            if config.transport_levels > 0:
-                moved = flow_transport(chosen, cov, u_ens[0, 0], chol_ens[0, 0], precisions[0],
-                                       lambda x: guide * log_likelihood(model, y, x),
-                                       transport_levels(config), config.transport_iterations)
-            else:
-                moved = gaussian_transport(chosen, cov, u_ens[0, 0], chol_ens[0, 0])
-            return jnp.where((kind == 1)[:, None], moved, draws)
-
-        draws = where_any(kind == 1, transported, draws)
+        draws = transported(model, config, k_res, y, prior_ens, cov, u_ens[0, 0], chol_ens[0, 0],
+                            precisions[0], kind, draws, guide)
     log_bf = jnp.where(informed & jnp.isfinite(log_bf), log_bf, 0.0)
     # without evidence the posterior is the prior, and the propagated members are exact draws of
     # it (module docstring)
@@ -418,13 +397,89 @@ def select(model: StateSpaceModel, config: MixtureConfig, key, y, centers, prior
                      log_evidence)
 
 
-def where_any(rows, fill, draws):
-    """``fill(draws)`` where any of ``rows (N,)`` is set, else ``draws (N, d)`` as they are:
-    ``fill`` replaces the set rows (a shock or transported member's draw), and most steps have
-    none of a kind (no shock member at all on a model without jumps), so its work (importance
-    draws for every member, a flow over ten noise levels) is skipped there. Under ``jax.vmap``
-    both branches run and the result is the same."""
-    return jax.lax.cond(jnp.any(rows), fill, lambda x: x, draws)
+def shock_draws(model: StateSpaceModel, config: MixtureConfig, key, y, mean, precisions, u, chol,
+                kind, draws, guide):
+    """``draws (N, d)`` with the shock members' (``kind > 1``) replaced by importance resampling
+    from their component's Laplace proposal (``config.proposals`` candidates each): the
+    reverse-diffusion sampler is left to the ensemble component. ``mean (d,)``: the prior
+    ensemble's; ``precisions (1 + G, d, d)``, ``u (1 + G, d)``, ``chol (1 + G, d, d)``: the
+    components' prior precisions and Laplace fits. Skipped on steps without a shock member."""
+    n, d = draws.shape
+
+    def fill(idx):
+        g = jnp.clip(kind - 1, 0, precisions.shape[0] - 1)
+        cand, log_wc = importance_weights(
+            key, jnp.broadcast_to(mean, (n, d)), precisions[g], u[g], chol[g],
+            lambda x: log_likelihood(model, y, x), guide, config.proposals, tail_df(model))
+        log_wc = jnp.where(jnp.isnan(log_wc), -jnp.inf, log_wc)
+        pick = jax.random.categorical(jax.random.fold_in(key, 1), log_wc, axis=0)
+        return jnp.take_along_axis(cand, pick[None, :, None], axis=0)[0]
+
+    return fill_rows(kind > 1, fill, draws)
+
+
+def transported(model: StateSpaceModel, config: MixtureConfig, key, y, prior_ens, cov, u, chol,
+                prior_prec, kind, draws, guide):
+    """``draws (N, d)`` with the ensemble component's members (``kind == 1``) replaced by moves
+    of a random subset of the propagated members ``prior_ens (N, d)`` onto its posterior
+    (``flow_transport``, or ``gaussian_transport`` without levels; ``cov``, ``u``, ``chol``,
+    ``prior_prec``: the component's). The subset is random because the systematic resampling
+    orders the members by component: a fixed block would move the same members step after step,
+    last step's shock members among them (the transport keeps an outlier an outlier). Each move
+    depends on its own member and the ensemble's mean only, so only the members drawn are moved
+    (``fill_rows``' blocks), the same numbers as moving all N at once."""
+    n = prior_ens.shape[0]
+    chosen = prior_ens[jax.random.permutation(jax.random.fold_in(key, 1), n)]
+    mean = prior_ens.mean(0)
+
+    def fill(idx):
+        members = jnp.take(chosen, idx, axis=0, mode="clip")
+        if config.transport_levels > 0:
+            return flow_transport(members, cov, u, chol, prior_prec,
+                                  lambda x: guide * log_likelihood(model, y, x),
+                                  transport_levels(config), config.transport_iterations, mean)
+        return gaussian_transport(members, cov, u, chol, mean)
+
+    return fill_rows(kind == 1, fill, draws, row_block(n))
+
+
+def row_block(n: int) -> int | None:
+    """The block of members ``fill_rows`` gathers a step's few members of one kind into: ``n //
+    ROW_BLOCK`` (None below ``MIN_ROW_BLOCK`` members). The ensemble component's share of the
+    members is at most a quarter on 73-100% of the steps of the paper's problems (60 steps each,
+    N = 1000: the double well's median 11%, 20-D's 0 or above a third), and each size is one
+    more compiled copy of the draws: one block and the whole ensemble."""
+    return n // ROW_BLOCK if n // ROW_BLOCK >= MIN_ROW_BLOCK else None
+
+
+def fill_rows(rows, fill, draws, block: int | None = None):
+    """``draws (N, d)`` with its rows where ``rows (N,)`` is set replaced by ``fill``'s.
+
+    ``fill(idx)``: the new rows ``(M, d)`` of the members ``idx (M,)`` (an index N pads: gather
+    with ``mode="clip"``; its row is dropped). One branch runs: nothing on a step without a set
+    row (most steps have no shock member; a model without jumps never does); with ``block``, the
+    set rows gathered into ``block`` rows where they fit (``fill`` must then compute each row from
+    its own member: the transport; the sampler, whose noise then differs); else
+    ``fill(arange(N))`` for all N (the shock draws, whose random numbers are drawn for all N at
+    once). Under ``jax.vmap`` every run takes the branch of the neediest run (``batch_max``), so
+    the switch stays a switch, not every branch's work selected.
+    """
+    n = draws.shape[0]
+    count = jnp.sum(rows.astype(jnp.int32))
+
+    def every(draws):
+        return jnp.where(rows[:, None], fill(jnp.arange(n)).astype(draws.dtype), draws)
+
+    def gathered(draws):
+        idx = jnp.nonzero(rows, size=block, fill_value=n)[0]
+        return draws.at[idx].set(fill(idx).astype(draws.dtype), mode="drop")
+
+    branches = [lambda draws: draws, every]
+    index = jnp.where(count > 0, 1, 0)
+    if block is not None and block < n:
+        branches = [lambda draws: draws, gathered, every]
+        index = jnp.where(count > block, 2, index)
+    return jax.lax.switch(batch_max(index), branches, draws)
 
 
 def proposal_constant(d: int, df: int | None, dtype) -> jax.Array:
@@ -447,14 +502,14 @@ def transports(config: MixtureConfig, prior_name: str) -> bool:
 
 
 @_linalg.precise
-def gaussian_transport(prior_ens, cov, u, chol):
+def gaussian_transport(prior_ens, cov, u, chol, mean=None):
     """``prior_ens (N, d)`` moved onto the Laplace posterior ``N(u (d,), A^{-1})``
     (``chol chol^T = A``, ``chol: (d, d)``) of the ensemble component with covariance
     ``cov (d, d)`` (its members' mean m): ``x -> u + L (L^T A L)^{-1/2} L^{-1} (x - m)``, with
     ``cov = L L^T``.
 
     The map is linear, so the members' mean goes to ``u``, and it takes ``cov`` to exactly
-    ``A^{-1}``. Among such maps it is the one symmetric in the whitened coordinates
+    ``A^{-1}`` (``mean (d,)``: m, None for the members' own mean). Among such maps it is the one symmetric in the whitened coordinates
     ``L^{-1} (x - m)``, which moves them least: with ``cov`` the members' sample covariance and a
     linear sensor it is the ensemble transform Kalman filter's symmetric square root (Hunt et al.
     2007; ``tests/test_mixture.py``). Each member keeps its own deviation, so what the prior holds
@@ -462,7 +517,7 @@ def gaussian_transport(prior_ens, cov, u, chol):
     draws from ``N(u, A^{-1})`` would drop it. Matrix products and triangular solves only
     (``inverse_sqrt``): no LAPACK call inside the filter's scan (docs/design.md).
     """
-    mean = prior_ens.mean(0)
+    mean = prior_ens.mean(0) if mean is None else mean
     lower = _linalg.cholesky(cov)
     whitened = _linalg.solve_lower(lower, prior_ens - mean)                  # (N, d)
     k = chol.T @ lower                                                       # L^T A L = k^T k
@@ -478,12 +533,14 @@ def transport_levels(config: MixtureConfig):
 
 
 @_linalg.precise
-def flow_transport(prior_ens, cov, u, chol, prior_prec, loglik, levels, iterations: int):
+def flow_transport(prior_ens, cov, u, chol, prior_prec, loglik, levels, iterations: int,
+                   mean=None):
     """``prior_ens (N, d)`` moved down the probability flow of the VE SDE onto the posterior
     ``N(m, B) p(y | x)`` of the ensemble component (prior mean m, the members' mean; prior
     precision ``prior_prec = B^{-1} (d, d)``; ``loglik: x (d,) -> log p(y | x)``, weighted by the
     guidance), with the Laplace posterior ``N(u (d,), A^{-1})`` (``chol chol^T = A``) as its
-    guide. In the whitened coordinates ``z = L^{-1} (x - m)`` (``cov = L L^T``), where the
+    guide (``mean (d,)``: m, None for the members' own; each member moves by itself given m). In
+    the whitened coordinates ``z = L^{-1} (x - m)`` (``cov = L L^T``), where the
     members' deviations are ``e_n`` and the Laplace posterior is ``N(z*, P)``:
 
     * **top** (``levels[0] = s_0``): ``z_n = z* + (P + s_0^2)^{1/2} e_n``, the members carried up
@@ -510,10 +567,10 @@ def flow_transport(prior_ens, cov, u, chol, prior_prec, loglik, levels, iteratio
     far from it) can stay caught there (tested). Matrix
     functions by ``inverse_sqrt``, triangular solves by ``_linalg``: no LAPACK call in the scan.
     """
-    n, d = prior_ens.shape
+    d = prior_ens.shape[1]
     dtype = prior_ens.dtype
     eye = jnp.eye(d, dtype=dtype)
-    mean = prior_ens.mean(0)
+    mean = prior_ens.mean(0) if mean is None else mean
     lower = _linalg.cholesky(cov)
     e = _linalg.solve_lower(lower, prior_ens - mean)                         # (N, d)
     k = chol.T @ lower

@@ -44,11 +44,9 @@ from jax.scipy.special import logsumexp
 import csf_jax
 from csf_jax import _linalg, mixture, problems
 from csf_jax.filters import csf
-from csf_jax.guidance import importance_weights
 from csf_jax.prior import ensemble_moments
 from csf_jax.ssm import (
     Step,
-    log_likelihood,
     log_normalizer,
     process_cov,
     process_draws,
@@ -267,45 +265,25 @@ def stage_functions(inp: StepInputs) -> tuple:
 
     @_linalg.precise
     def shock_draws(y, k_shock, prior_ens, precisions, u_ens, chol_ens, kind, draws, guide):
-        n, d = prior_ens.shape
-
-        def fill(draws):
-            g = jnp.clip(kind - 1, 0, precisions.shape[0] - 1)
-            cand, log_wc = importance_weights(
-                k_shock, jnp.broadcast_to(prior_ens.mean(0), (n, d)), precisions[g], u_ens[g],
-                chol_ens[g], lambda x: log_likelihood(model, y, x), guide, mix.proposals,
-                tail_df(model))
-            log_wc = jnp.where(jnp.isnan(log_wc), -jnp.inf, log_wc)
-            pick = jax.random.categorical(jax.random.fold_in(k_shock, 1), log_wc, axis=0)
-            picked = jnp.take_along_axis(cand, pick[None, :, None], axis=0)[0]
-            return jnp.where((kind > 1)[:, None], picked, draws)
-
-        return mixture.where_any(kind > 1, fill, draws)
+        return mixture.shock_draws(model, mix, k_shock, y, prior_ens.mean(0), precisions, u_ens,
+                                   chol_ens, kind, draws, guide)
 
     @_linalg.precise
     def transport_stage(y, k_res, prior_ens, cov, u_ens, chol_ens, precisions, kind, draws,
                         guide):
-        def fill(draws):
-            chosen = prior_ens[jax.random.permutation(jax.random.fold_in(k_res, 1),
-                                                      prior_ens.shape[0])]
-            if mix.transport_levels > 0:
-                moved = mixture.flow_transport(
-                    chosen, cov, u_ens[0], chol_ens[0], precisions[0],
-                    lambda x: guide * log_likelihood(model, y, x),
-                    mixture.transport_levels(mix), mix.transport_iterations)
-            else:
-                moved = mixture.gaussian_transport(chosen, cov, u_ens[0], chol_ens[0])
-            return jnp.where((kind == 1)[:, None], moved, draws)
-
-        return mixture.where_any(kind == 1, fill, draws)
+        return mixture.transported(model, mix, k_res, y, prior_ens, cov, u_ens[0], chol_ens[0],
+                                   precisions[0], kind, draws, guide)
 
     def sampler(params, y, k_rev, centers, prior_ens, x_init, start_precision, kind, draws,
                 guide, *, tau):
         context = prior.condition(params, centers, prior_ens, model.process_std)
         start = csf.SamplerStart(start_precision, tau)
-        return mixture.where_any(kind == 1, lambda draws: jnp.where(
-            (kind == 1)[:, None], sample(params, context, y, x_init, start, k_rev, guide),
-            draws), draws)
+
+        def fill(idx):
+            return sample(params, context, y, jnp.take(x_init, idx, axis=0, mode="clip"), start,
+                          k_rev, guide, (idx, x_init.shape[0]))
+
+        return mixture.fill_rows(kind == 1, fill, draws, mixture.row_block(draws.shape[0]))
 
     stages = {"propagation": propagation, "moments": moments,
               "ensemble_evidence": ensemble_evidence, "particle_evidence": particle_evidence,

@@ -23,8 +23,8 @@ def _check_spread(data):
     prior, samples, bins = data["prior_ensemble"], data["csf_samples"], data["bins"]
     assert np.all(np.isfinite(samples)) and samples.shape == prior.shape
     mean, std = prior.mean(), prior.std()
-    # the samples' spread is the prior ensemble's (the exact mixture prior: it is that ensemble's
-    # law, up to sampling noise), and the plotted range stays within a few of its stds
+    # the samples' spread is the prior ensemble's (params=None: the ensemble's Gaussian, its
+    # moments, up to sampling noise), and the plotted range stays within a few of its stds
     assert 0.7 < samples.std() / std < 1.4, (samples.std(), std)
     assert abs(samples.mean() - mean) < 0.5 * std
     assert mean - 8 * std <= bins[0] and bins[-1] <= mean + 8 * std, (bins[0], bins[-1], mean, std)
@@ -35,7 +35,7 @@ def _check_spread(data):
 @pytest.mark.slow
 def test_prior_figure_plots_the_filters_own_prior_samples(tmp_path):
     data = _prior_data()
-    assert data["prior_name"] == "exact_mixture" and 1 <= data["step"] <= 12
+    assert data["prior_name"] == "gaussian" and 1 <= data["step"] <= 12
     _check_spread(data)
     path = figures.prior_figure(str(tmp_path), "double_well", data)
     assert path.endswith("prior.png") and (tmp_path / "prior.png").stat().st_size > 5_000

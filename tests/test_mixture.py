@@ -594,13 +594,70 @@ def test_the_transport_moves_a_random_subset_of_the_members_and_skips_the_sample
     assert not np.array_equal(match, np.arange(len(match)))                    # shuffled
 
 
-def test_where_any_fills_only_where_a_row_is_set_and_vmaps():
-    """The shock and transport fills run where a member of their kind exists, and leave the draws
-    as they are elsewhere; batched over runs (where both branches run) the result is the same."""
-    draws = jnp.arange(6.0).reshape(3, 2)
-    fill = lambda d: jnp.where(jnp.array([True, False, True])[:, None], -d, d)
-    np.testing.assert_array_equal(mixture.where_any(jnp.zeros(3, bool), fill, draws), draws)
-    np.testing.assert_array_equal(mixture.where_any(jnp.ones(3, bool), fill, draws), fill(draws))
-    rows = jnp.array([[False] * 3, [True] * 3])
-    got = jax.vmap(lambda r: mixture.where_any(r, fill, draws))(rows)
-    np.testing.assert_array_equal(got, jnp.stack([draws, fill(draws)]))
+def _rowwise(idx):
+    """A fill computed row by row from the member's index (an index N pads)."""
+    return jnp.stack([-1.0 - idx, 10.0 * idx], axis=1).astype(jnp.float32)
+
+
+@pytest.mark.parametrize("count", [0, 1, 11, 12, 13, 48])
+def test_fill_rows_replaces_the_set_rows_in_every_branch(count):
+    """However many rows are set (none; within the block; above it), the set rows take fill's and
+    the others keep theirs, as computing the fill for all N would."""
+    n = 48
+    draws = jnp.arange(2.0 * n).reshape(n, 2)
+    rows = jax.random.permutation(jax.random.key(count), jnp.arange(n) < count)
+    expected = jnp.where(rows[:, None], _rowwise(jnp.arange(n)), draws)
+    got = jax.jit(lambda r, d: mixture.fill_rows(r, _rowwise, d, 12))(rows, draws)
+    np.testing.assert_array_equal(got, expected)
+    np.testing.assert_array_equal(mixture.fill_rows(rows, _rowwise, draws), expected)
+
+
+def test_fill_rows_under_vmap_takes_one_branch_and_matches_separate_calls():
+    """Vmapped over runs with different counts (none, few, many) each run gets what its own call
+    gets, and the step keeps a real branch (``batch_max``), not every branch's work selected."""
+    n = 48
+    draws = jnp.arange(2.0 * n).reshape(n, 2)
+    rows = jnp.stack([jnp.arange(n) < c for c in (0, 3, 30)])
+    fn = lambda r: mixture.fill_rows(r, _rowwise, draws, 12)
+    got = jax.vmap(fn)(rows)
+    for r, g in zip(rows, got):
+        np.testing.assert_array_equal(g, fn(r))
+    eqns = jax.make_jaxpr(jax.vmap(fn))(rows).jaxpr.eqns
+    conds = [e for e in eqns if e.primitive.name == "cond"]
+    assert len(conds) == 1 and len(conds[0].params["branches"]) == 3
+
+
+def test_batch_max_is_the_runs_largest_and_unbatched():
+    from csf_jax._batch import batch_max
+
+    assert int(batch_max(jnp.int32(3))) == 3
+    ks = jnp.array([[0, 4], [2, 1]])
+    out = jax.vmap(jax.vmap(lambda k: batch_max(k) + 0 * k))(ks)
+    np.testing.assert_array_equal(out, jnp.full((2, 2), 4))
+
+
+def test_transported_in_blocks_is_the_transport_of_all_members():
+    """The ensemble component's members moved in a block of their own are the members moved
+    when all N are (each move depends on its member and the ensemble's mean only)."""
+    model = csf_jax.problems.get("cubic10_indep")
+    n, d = 200, model.dim
+    key = jax.random.key(4)
+    prior_ens = 0.5 * jax.random.normal(key, (n, d)) + 1.0
+    y = jnp.full((d,), 1.5)
+    cov = jnp.cov(prior_ens.T) + 1e-3 * jnp.eye(d)
+    prec = jnp.linalg.inv(cov)
+    u, chol = prior_ens.mean(0) + 0.1, jnp.linalg.cholesky(2.0 * prec)
+    kind = jnp.where(jnp.arange(n) % 9 == 0, 1, 0)
+    draws = jnp.zeros((n, d))
+    config = MixtureConfig()
+    blocked = mixture.transported(model, config, key, y, prior_ens, cov, u, chol, prec, kind, draws,
+                                  1.0)
+    block, mixture.ROW_BLOCK = mixture.ROW_BLOCK, 1
+    try:
+        whole = mixture.transported(model, config, key, y, prior_ens, cov, u, chol, prec, kind,
+                                    draws, 1.0)
+    finally:
+        mixture.ROW_BLOCK = block
+    assert int(jnp.sum(kind)) <= mixture.row_block(n)
+    np.testing.assert_allclose(blocked, whole, rtol=1e-5, atol=1e-5)
+    assert np.all(np.asarray(blocked)[np.asarray(kind) == 0] == 0)

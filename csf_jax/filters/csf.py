@@ -421,9 +421,14 @@ def _step(model: StateSpaceModel, static: CSFStatic, params, state, y, key, time
                          moments.cov, jnp.square(start.tau), odds, guide, transport)
     post = sel.draws
     if not transport:
-        post = mixture.where_any(sel.kind == 1, lambda post: jnp.where(
-            (sel.kind == 1)[:, None], sample(params, context, y, x_init, start, k_rev, guide),
-            post), post)
+        # the reverse diffusion runs on the ensemble component's members only where they fit in
+        # a block (the block's noise its own); across the devices of ``shards`` on all N
+        def fill(idx):
+            return sample(params, context, y, jnp.take(x_init, idx, axis=0, mode="clip"), start,
+                          k_rev, guide)
+
+        block = mixture.row_block(ens.shape[0]) if static.shards == 1 else None
+        post = mixture.fill_rows(sel.kind == 1, fill, post, block)
     memory, _ = mixture.next_odds(config.prior.mixture, memory, sel.log_bf, sel.informed)
     info = {"particle_weight": sel.particle_weight, "shock_weight": sel.shock_weight}
     kept = jnp.all(jnp.isfinite(prior_ens)) & jnp.all(jnp.isfinite(moments.cov))
