@@ -17,6 +17,12 @@ for K = 50 steps. A filter is one ``jax.jit`` of ``csf_jax.run``, fresh in every
 
 The sharded LETKF's row has no figures: it needs a mesh of several devices. The whole command
 takes about a minute on a 2-core CPU.
+
+``--paper`` times instead, on the paper's 10-D and 20-D columns (``cubic10_indep``,
+``cubic20_indep``, N = 1000, K = ``PAPER_STEPS``), the EnKF, the README's call (``params=None``)
+and the shipped trained prior, each a fresh ``jax.jit`` in the same process, and writes
+``results_paper.json`` and the block ``costs_paper`` of docs/benchmark.md: each one's first call,
+its seconds per step and their ratio to the EnKF's (about 2 minutes).
 """
 
 from __future__ import annotations
@@ -56,6 +62,10 @@ class Row:
     settings: tuple = ()
 
 
+PAPER_STEPS = 40
+PAPER_COLUMNS = ("cubic10_indep", "cubic20_indep")
+
+
 def _ring(model) -> csf_jax.Localization:
     """The ring localisation of a Lorenz-96 model whose every site is seen."""
     return csf_jax.ring_localization(model.dim, obs_sites(problems.config("lorenz96")))
@@ -79,6 +89,41 @@ ROWS = (
     Row("the same, over several devices or hosts", "the sharded LETKF",
         "methods.sharded_letkf(loc, mesh=mesh)", "sharded LETKF"),
 )
+
+
+def paper_rows() -> tuple:
+    """The ``--paper`` rows: the EnKF, the README's call and the trained prior on each column."""
+    rows = []
+    for problem in PAPER_COLUMNS:
+        rows += [Row(problem, "the EnKF", "methods.enkf()", "EnKF", problem, 1000,
+                     lambda m: methods.enkf()),
+                 Row(problem, "CSF, the README's call", "csf_jax.filter(None, ...)",
+                     "CSF params=None", problem, 1000, lambda m: methods.csf()),
+                 Row(problem, "CSF, the shipped trained prior",
+                     f'csf_jax.filter(load_pretrained("{problem}"), ...)', "CSF trained",
+                     problem, 1000, lambda m, p=problem: methods.csf(csf_jax.load_pretrained(p)))]
+    return tuple(rows)
+
+
+def paper_page(record: dict) -> list:
+    """The ``costs_paper`` block: per column, each filter's first call, seconds per step and
+    ratios to the EnKF's."""
+    enkf = {r["problem"]: r for r in record["rows"] if r["filter"] == "EnKF"}
+    lines = []
+    for r in record["rows"]:
+        e = enkf[r["problem"]]
+        lines.append([f"`{r['problem']}` (d = {r['dim']})", f"`{r['builder']}`",
+                      seconds(r["first_call_seconds"]), seconds(r["seconds_per_step"]),
+                      f"{r['seconds_per_step'] / e['seconds_per_step']:.3g}x",
+                      f"{r['first_call_seconds'] / e['first_call_seconds']:.3g}x"])
+    m = record["machine"]
+    return (harness.table(["column", "call", "first call", "per step", "per step / EnKF's",
+                           "first call / EnKF's"], lines)
+            + ["", f"Made by `{record['command']}` on {record['date']}, {m['cpu']} "
+               f"({m['cpu_count']} cores, jax {m['jax_backend']}): N = "
+               f"{record['rows'][0]['particles']}, K = {record['rows'][0]['steps']} steps, each "
+               f"call a fresh `jax.jit` of `csf_jax.run` in one process; the first call includes "
+               f"its compilation, the per-step figure is the median of the further calls."])
 
 
 def inputs(row: Row, steps: int, seed: int):
@@ -147,23 +192,30 @@ def main(argv=None):
     harness.add_outputs(p, "results/costs", "docs/choosing.md")
     p.add_argument("--repeats", type=harness.int_at_least(1), default=3,
                    help="timed calls after the first (default %(default)s)")
-    p.add_argument("--steps", type=harness.int_at_least(1), default=STEPS,
-                   help="filter steps K per call (default %(default)s)")
+    p.add_argument("--steps", type=harness.int_at_least(1), default=None,
+                   help=f"filter steps K per call (default {STEPS}; {PAPER_STEPS} with --paper)")
+    p.add_argument("--paper", action="store_true",
+                   help="time the EnKF, the README's call and the trained prior on the paper's "
+                        "10-D and 20-D columns (docs/benchmark.md's costs_paper block)")
     p.add_argument("--seed", type=harness.int_at_least(0), default=0,
                    help="seed of the runs (default %(default)s)")
     args = p.parse_args(argv)
     cli.check_outputs(p, args, "costs")
+    steps = args.steps or (PAPER_STEPS if args.paper else STEPS)
     rows = []
-    for row in ROWS:
+    for row in paper_rows() if args.paper else ROWS:
         if row.build is None:
             continue
-        rows.append(time_row(row, args.steps, args.repeats, args.seed))
+        rows.append(time_row(row, steps, args.repeats, args.seed))
         if not args.no_progress:
             r = rows[-1]
-            print(f"{row.label}: first call {r['first_call_seconds']:.1f} s, "
+            print(f"{row.problem} {row.label}: first call {r['first_call_seconds']:.1f} s, "
                   f"{r['seconds_per_step'] * 1e3:.3g} ms per step", flush=True)
     record = harness.results_record("costs", harness.command("costs", argv), rows)
-    harness.publish(args, record, page(record), tag="costs")
+    if args.paper:
+        harness.publish(args, record, paper_page(record), "results_paper.json", "costs_paper")
+    else:
+        harness.publish(args, record, page(record), tag="costs")
 
 
 if __name__ == "__main__":

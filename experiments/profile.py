@@ -24,7 +24,10 @@ How a case is measured (``profile_case``), at ``CSFConfig()``:
   recorded), and the per-step seconds of a ``csf_jax.filter`` run over K = ``RUN_STEPS`` steps
   (one ``jax.jit`` of the call: its scan). "other" is the whole step minus the stages: what the
   stages' own jits do not see (fusion across stages, the step's glue) and the stages' call
-  overheads taken back.
+  overheads taken back;
+* with the trained prior, its score network alone (``network_time``): the encoder and the
+  sampler's L evaluations of ``s(x, t; c)`` on all N members, what the network costs a step
+  where the sampler runs on every member, against the whole step.
 """
 
 from __future__ import annotations
@@ -281,7 +284,7 @@ def stage_functions(inp: StepInputs) -> tuple:
 
         def fill(idx):
             return sample(params, context, y, jnp.take(x_init, idx, axis=0, mode="clip"), start,
-                          k_rev, guide, (idx, x_init.shape[0]))
+                          k_rev, guide)
 
         return mixture.fill_rows(kind == 1, fill, draws, mixture.row_block(draws.shape[0]))
 
@@ -338,6 +341,26 @@ def stage_pipeline(inp: StepInputs, repeats: int = 1, budget: float = 0.0) -> tu
     return out, jnp.where(informed, draws, prior_ens), kind_out
 
 
+def network_time(inp: StepInputs, propagated: tuple, repeats: int, budget: float) -> Timing:
+    """The score network alone, as the trained sampler evaluates it in a step where it runs on
+    all N members: the encoder once, then ``reverse_steps`` evaluations of ``s(x, t; c)`` on
+    ``(N, d)`` (a scan, each step's input the last one's output nudged, so none is hoisted)."""
+    config, prior = inp.static.config, inp.static.prior
+    centers, prior_ens = propagated
+    steps = config.sampler.reverse_steps
+
+    def network(params, centers, prior_ens):
+        context = prior.condition(params, centers, prior_ens, inp.model.process_std)
+
+        def evaluate(x, t):
+            return x + 1e-3 * prior.score(params, context, x, t), None
+
+        return jax.lax.scan(evaluate, prior_ens, jnp.linspace(1.0, 1e-3, steps,
+                                                              dtype=prior_ens.dtype))[0]
+
+    return timed(network, (inp.params, centers, prior_ens), repeats, budget)
+
+
 def profile_case(problem: str, particles: int, route: str, repeats: int, budget: float,
                  seed: int, warm: int = WARM_STEPS, steps: int = RUN_STEPS) -> dict:
     """One case's results row: the stages' milliseconds, the whole step's (and its compile
@@ -350,6 +373,8 @@ def profile_case(problem: str, particles: int, route: str, repeats: int, budget:
     ready = compiled(step, first)
     inp = step_inputs(bound, static, raw, obs, ensemble, key, warm, ready[0])
     stages, _, kind = stage_pipeline(inp, repeats, budget)
+    network = (None if route == "none" else
+               network_time(inp, stages["propagation"].output, repeats, budget).seconds * 1e3)
     members = [int(v) for v in jnp.bincount(jnp.minimum(kind, 2), length=3)]
     whole = timed(step, (inp.params, inp.ens, inp.memory, inp.y, inp.key, inp.k), repeats, budget,
                   ready)
@@ -359,6 +384,7 @@ def profile_case(problem: str, particles: int, route: str, repeats: int, budget:
             "stages_ms": {name: t.seconds * 1e3 for name, t in stages.items()},
             "stage_calls": {name: t.calls for name, t in stages.items()},
             "members": dict(zip(("particle", "ensemble", "shock"), members)),
+            "network_ms": network,
             "whole_step_ms": whole.seconds * 1e3, "whole_step_calls": whole.calls,
             "whole_step_compile_seconds": whole.compile_seconds,
             "run_steps": steps, "run_ms_per_step": run.seconds / steps * 1e3,
@@ -390,6 +416,10 @@ def route_table(rows: list) -> list:
                                                     for p, r in zip(parts, rows)])
     lines.append(["**whole step** (`csf._step`, one jit)"] + [f"**{ms(r['whole_step_ms'])}**"
                                                                for r in rows])
+    if any(r.get("network_ms") is not None for r in rows):
+        lines.append(["of the sampler: the score network alone (the encoder and L evaluations "
+                      "on all N members)"]
+                     + [cell(r["network_ms"], r["whole_step_ms"]) for r in rows])
     lines.append([f"per step of a K = {rows[0]['run_steps']} `csf_jax.filter` run (the scan)"]
                  + [ms(r["run_ms_per_step"]) for r in rows])
     lines.append(["members drawn from the particle / ensemble / shock components"]

@@ -118,6 +118,8 @@ GPU_BENCH = ("--torch-threads", "1", *_outputs("results/bench", BENCH))
 JOBS = (
     job("costs", "costs", *_outputs("results/costs", "docs/choosing.md"),
         blocks=[("docs/choosing.md", "costs")], results=["results/costs/results.json"]),
+    job("costs_paper", "costs", "--paper", *_outputs("results/costs", BENCH),
+        blocks=[(BENCH, "costs_paper")], results=["results/costs/results_paper.json"]),
     job("tutorial", "tutorial", "docs/tutorial", inputs=["docs/tutorial.md"],
         results=["docs/tutorial/output.txt", "docs/tutorial/lorenz63_tutorial.png"]),
     job("table", "table", *_outputs("results/table", "docs/results.md"), "--readme", "README.md",

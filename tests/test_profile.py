@@ -34,6 +34,21 @@ def test_stages_are_the_step_and_take_time():
     np.testing.assert_allclose(np.asarray(post), np.asarray(whole), rtol=1e-5, atol=1e-6)
 
 
+def test_trained_route_stages_are_the_step():
+    """The double well's shipped prior, N = 64 (the sampler's block of 16 members): the stages
+    give the step's posterior, and the network alone times positive."""
+    model, obs, ensemble, key = profile.case_data("double_well", 64, 0, steps=3)
+    bound, static, raw = profile.bind(model, profile.user_params("double_well", "trained"),
+                                      ensemble)
+    step = jax.jit(profile.whole_step(bound, static))
+    inp = profile.step_inputs(bound, static, raw, obs, ensemble, key, warm=1, step=step)
+    stages, post, _ = profile.stage_pipeline(inp, repeats=1, budget=1.0)
+    assert "sampler" in stages and "transport" not in stages
+    (whole, _), _ = step(inp.params, inp.ens, inp.memory, inp.y, inp.key, inp.k)
+    np.testing.assert_allclose(np.asarray(post), np.asarray(whole), rtol=1e-5, atol=1e-6)
+    assert profile.network_time(inp, stages["propagation"].output, 1, 1.0).seconds > 0
+
+
 def test_block_has_a_table_per_route():
     def row(route, d, n):
         return {"route": route, "dim": d, "particles": n, "run_steps": 20,
