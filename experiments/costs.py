@@ -200,7 +200,7 @@ def main(argv=None):
     p.add_argument("--seed", type=harness.int_at_least(0), default=0,
                    help="seed of the runs (default %(default)s)")
     args = p.parse_args(argv)
-    cli.check_outputs(p, args, "costs")
+    cli.check_outputs(p, args, "costs_paper" if args.paper else "costs")
     steps = args.steps or (PAPER_STEPS if args.paper else STEPS)
     rows = []
     for row in paper_rows() if args.paper else ROWS:

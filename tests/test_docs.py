@@ -430,6 +430,36 @@ def test_costs_block_and_command():
     assert done.returncode == 0 and "--page" in done.stdout, done.stderr[-2000:]
 
 
+def test_costs_paper_rows_and_block():
+    """``--paper`` times the EnKF, the README's call and the trained prior on both of the paper's
+    cubic columns, and its block gives each as a multiple of the EnKF's on the same column; the
+    benchmark page holds the block's markers, and the command checks them."""
+    from experiments import costs
+
+    rows = costs.paper_rows()
+    assert [(r.problem, r.label) for r in rows] == [
+        (p, label) for p in costs.PAPER_COLUMNS
+        for label in ("EnKF", "CSF params=None", "CSF trained")]
+
+    def timed(label, builder, first, step):
+        return {"filter": label, "builder": builder, "problem": "cubic20_indep", "dim": 20,
+                "particles": 1000, "steps": 40, "first_call_seconds": first,
+                "seconds_per_step": step}
+
+    record = {"rows": [timed("EnKF", "methods.enkf()", 4.0, 0.001),
+                       timed("CSF params=None", "csf_jax.filter(None, ...)", 10.0, 0.025)],
+              "machine": {"cpu": "a CPU", "cpu_count": 2, "jax_backend": "cpu"},
+              "command": "python -m experiments.costs --paper", "date": "today"}
+    line = next(l for l in costs.paper_page(record) if "filter(None" in l)
+    assert "| 25x | 2.5x |" in line, line
+    page = _text("docs/benchmark.md")
+    assert "<!-- results:costs_paper:start -->" in page and "<!-- results:costs_paper:end -->" in page
+    done = subprocess.run([sys.executable, "-m", "experiments.costs", "--paper", "--page",
+                           "docs/choosing.md", "--steps", "1"], cwd=ROOT, capture_output=True,
+                          text=True, check=False)
+    assert done.returncode == 2 and "costs_paper" in done.stderr, done.stderr[-2000:]
+
+
 def _png_size(path) -> tuple:
     """(width, height) of a PNG, read from its header."""
     with open(path, "rb") as f:
