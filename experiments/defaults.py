@@ -50,6 +50,9 @@ CANDIDATES = {
     # the default with shock members only where a jump is the more probable reading
     # (``MixtureConfig.shock_gate``)
     "gated": _mixture(shock_gate=0.5),
+    # the default with shocks widened along every direction, also those the sensor does not
+    # see (``MixtureConfig.shock_span``)
+    "isotropic": _mixture(shock_span="isotropic"),
     # the default with the ensemble component's members drawn afresh by the reverse-diffusion
     # sampler instead of transported (``MixtureConfig.ensemble_draws``)
     "sampler": _mixture(ensemble_draws="sampler"),

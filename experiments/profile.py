@@ -67,7 +67,7 @@ WARM_STEPS = 5
 RUN_STEPS = 20
 
 STAGES = {
-    "propagation": "propagation (drift + process noise)",
+    "propagation": "propagation (drift + process noise, wild members dropped)",
     "moments": "ensemble moments (covariance; trained: and the sampler's precision)",
     "ensemble_evidence": "ensemble + shock components' evidence (1 + G Laplace fits)",
     "particle_evidence": "particle components' evidence (N Laplace fits + weights)",
@@ -180,9 +180,11 @@ def stage_functions(inp: StepInputs) -> tuple:
     transport = mixture.transports(mix, prior.name)
     sample = csf.particle_sampler(model, prior, config, static.shards)
 
-    def propagation(ens, k_prop):
+    def propagation(ens, k_prop, k_wild):
         centers = jax.vmap(model.drift)(ens)
-        return centers, centers + process_draws(model, k_prop, ens.shape, ens.dtype)
+        prior_ens = centers + process_draws(model, k_prop, ens.shape, ens.dtype)
+        wild = mixture.wild_members(prior_ens, mix.wild_ranges)
+        return mixture.tame(k_wild, wild, centers, prior_ens)[0]
 
     def moments(prior_ens, k_init, y, guide):
         cov = ensemble_moments(prior_ens, covariance=config.prior.covariance).cov
@@ -194,18 +196,14 @@ def stage_functions(inp: StepInputs) -> tuple:
     @_linalg.precise
     def ensemble_evidence(y, k_ens, prior_ens, cov, tau2, guide):
         n, d = prior_ens.shape
-        eye = jnp.eye(d, dtype=prior_ens.dtype)
         mean = prior_ens.mean(0)
         scales = jnp.asarray(mix.shock_scales, prior_ens.dtype)
         shock_tau2 = jnp.trace(cov) / d * scales
         inflation = jnp.concatenate([jnp.reshape(jnp.asarray(tau2, prior_ens.dtype), (1,)),
                                      shock_tau2 if mix.shock_hazard > 0
                                      else jnp.zeros((0,), prior_ens.dtype)])
-        shape = eye
-        if mix.shock_span == "observed":
-            seen = mixture.seen_directions(model, y, prior_ens)
-            shape = jnp.stack([eye] + [seen] * (inflation.shape[0] - 1))
-        precisions = mixture.precision(cov[None] + inflation[:, None, None] * shape)
+        shapes = mixture.inflation_shapes(model, mix, y, prior_ens, inflation.shape[0])
+        precisions = mixture.precision(cov[None] + inflation[:, None, None] * shapes)
         keys = jax.random.split(k_ens, precisions.shape[0])
         log_z, _, u, chol = jax.vmap(lambda p, k: mixture._component_evidence(
             model, y, k, mean[None], p, mix.ensemble_iterations, mix.ensemble_proposals,
@@ -316,7 +314,7 @@ def stage_pipeline(inp: StepInputs, repeats: int = 1, budget: float = 0.0) -> tu
         out[name] = timed(fns[name], args, repeats, budget)
         return out[name].output
 
-    centers, prior_ens = run("propagation", inp.ens, k_prop)
+    centers, prior_ens = run("propagation", inp.ens, k_prop, jax.random.fold_in(inp.key, 4))
     tau = csf.step_inflation(config, prior_ens, inp.y, inp.model, guide)
     tau2 = jnp.square(jnp.asarray(tau, prior_ens.dtype))
     cov, x_init, start_precision = run("moments", prior_ens, k_init, inp.y, guide)

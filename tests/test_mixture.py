@@ -242,6 +242,26 @@ def test_observed_span_shocks_move_only_the_observed_coordinates():
     assert float(jnp.max(jnp.std(wide.draws[wide.kind > 1][:, 1:], axis=0))) > 1.0
 
 
+def test_shocks_widen_the_unseen_directions_by_at_most_shock_unseen():
+    """With the default span a shock of scale s widens what the sensor sees (coordinate 0 of 2)
+    by s and the unseen coordinate by ``min(s, shock_unseen) / s`` of it; the ensemble
+    component and the isotropic span widen both alike."""
+    model = csf_jax.StateSpaceModel(
+        "first", 2, 1, 3, 1.0, lambda x: x, lambda x: x[:1], 0.1, csf_jax.gaussian_noise(0.1),
+        lambda k: jnp.zeros(2), lambda k, n: jax.random.normal(k, (n, 2)))
+    ens = jax.random.normal(jax.random.key(0), (50, 2))
+    config = MixtureConfig()
+    count = 1 + len(config.shock_scales)
+    shapes = mixture.inflation_shapes(model, config, jnp.zeros(1), ens, count)
+    unseen = [min(s, config.shock_unseen) / s for s in config.shock_scales]
+    np.testing.assert_allclose(shapes[:, 0, 0], 1.0)
+    np.testing.assert_allclose(shapes[:, 1, 1], [1.0] + unseen, rtol=1e-6)
+    np.testing.assert_allclose(shapes[:, 0, 1], 0.0)
+    iso = mixture.inflation_shapes(model, MixtureConfig(shock_span="isotropic"), jnp.zeros(1),
+                                   ens, count)
+    np.testing.assert_array_equal(iso, jnp.eye(2))
+
+
 def test_memory_accumulates_with_forgetting():
     cfg = MixtureConfig(memory=0.5, particle_logodds=1.0)
     acc, odds = mixture.next_odds(cfg, 2.0, 3.0)
@@ -259,7 +279,7 @@ def test_mixture_csf_tracks_kalman(x64):
     err = case.errors(r.mean, r.std)
     assert err.mean_rms < 0.25 and err.mean_max < 0.7, err
     assert err.std_rms < 0.25, err
-    assert set(r.info) == {"particle_weight", "shock_weight"}
+    assert set(r.info) == {"particle_weight", "shock_weight", "dropped"}
     assert r.info["particle_weight"].shape == (case.obs.shape[0],)
 
 
@@ -272,7 +292,9 @@ def test_bad_mixture_config_is_refused():
                 dict(particle_kernel=float("nan")), dict(ensemble_draws="fresh"),
                 dict(transport_levels=-1), dict(transport_levels=True),
                 dict(transport_levels=2.0), dict(transport_iterations=0),
-                dict(shock_gate=1.0), dict(shock_gate=-0.1), dict(shock_gate=float("nan"))):
+                dict(shock_gate=1.0), dict(shock_gate=-0.1), dict(shock_gate=float("nan")),
+                dict(shock_unseen=-1.0), dict(shock_unseen=float("inf")),
+                dict(wild_ranges=-1.0), dict(wild_ranges=float("nan"))):
         with pytest.raises(ValueError, match="MixtureConfig"):
             MixtureConfig(**bad)
     with pytest.raises(TypeError, match="mixture"):
@@ -397,27 +419,82 @@ def _overflowing_model():
         lambda k, n: 0.1 * jax.random.normal(k, (n, 1)))
 
 
-@pytest.mark.parametrize("points", [pytest.param(True, marks=pytest.mark.slow), False])
-def test_a_forecast_that_overflows_is_reported_even_when_resampled_away(points):
-    """One member's forecast is inf. With point particle components and no discount (``points``)
-    the mixture gives its components no weight and the posterior is finite; with the default's
-    kernels and discount the inf reaches every component through the kernels' common centre and
-    covariance and the evidence weights' effective sample size. Either way the run has diverged:
-    step 1 on is reported (``finite`` False) and a concrete call raises, with advice that names
-    no setting to switch to."""
+def test_a_forecast_that_overflows_is_dropped_counted_and_warned_of():
+    """One member's forecast is inf: it is dropped (replaced by a copy of another member), the
+    run stays finite, ``info["dropped"]`` counts it at its step, and a concrete call warns
+    naming the step. Where every member overflows nothing is left to copy: the run is reported
+    from that step on (``finite`` False) and a concrete call raises."""
     model = _overflowing_model()
     ens = 0.1 * jax.random.normal(jax.random.key(0), (64, 1))
-    ens = ens.at[0].set(10.0)
     obs = jnp.zeros((3, 1))
-    mix = MixtureConfig(particle_kernel=0.0, particle_ess=0.0) if points else MixtureConfig()
-    config = CSFConfig(prior=PriorConfig(mixture=mix))
-    r = csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(1), config=config,
-                       check_finite=False, return_ensembles=True)
-    assert bool(jnp.isfinite(r.ensembles).all()) == points
+    with pytest.warns(RuntimeWarning, match="1 member.* went wild at step 1 of 3"):
+        r = csf_jax.filter(None, obs, ens.at[0].set(10.0), model=model, key=jax.random.key(1),
+                           return_ensembles=True)
+    assert bool(r.finite.all()) and bool(jnp.isfinite(r.ensembles).all())
+    np.testing.assert_array_equal(r.info["dropped"], [1, 0, 0])
+    r = csf_jax.filter(None, obs, ens + 10.0, model=model, key=jax.random.key(1),
+                       check_finite=False)
     assert not bool(r.finite.any())
     with pytest.raises(FloatingPointError, match="non-finite at step 1 of 3") as err:
-        csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(1), config=config)
+        csf_jax.filter(None, obs, ens + 10.0, model=model, key=jax.random.key(1))
     assert "clipped" not in str(err.value) and "GuidanceConfig" not in str(err.value)
+
+
+def test_wild_members_are_the_non_finite_and_the_far_off_only():
+    """``wild_members`` flags a non-finite member and one 1e6 off an N(0, 1) ensemble; a minority
+    mode (3% of the members, 100 off) and the shocks' reach (64 spreads) are kept; ``ranges`` 0
+    flags the non-finite one only. ``tame`` replaces the flagged rows of every array by the same
+    other member, and counts them."""
+    ens = jax.random.normal(jax.random.key(0), (1000, 3))
+    ens = ens.at[:30, 1].add(100.0).at[30].set(64.0)
+    wild = ens.at[40, 2].set(1e6).at[41, 0].set(jnp.nan)
+    flags = np.asarray(mixture.wild_members(wild, 1e3))
+    np.testing.assert_array_equal(np.flatnonzero(flags), [40, 41])
+    np.testing.assert_array_equal(np.flatnonzero(mixture.wild_members(wild, 0.0)), [41])
+    assert not mixture.wild_members(ens, 1e3).any()
+    other = jnp.arange(1000.0)
+    (tamed, tamed_other), count = mixture.tame(jax.random.key(1), jnp.asarray(flags), wild, other)
+    assert int(count) == 2 and bool(jnp.isfinite(tamed).all())
+    for row in (40, 41):
+        source = int(tamed_other[row])
+        assert source not in (40, 41)
+        np.testing.assert_array_equal(tamed[row], wild[source])
+    keep = np.ones(1000, bool)
+    keep[[40, 41]] = False
+    np.testing.assert_array_equal(tamed[keep], wild[keep])
+
+
+def _lotka_volterra_run(seed: int, mix: MixtureConfig):
+    model = csf_jax.problems.get("lotka_volterra")
+    truth, obs = csf_jax.simulate(model, jax.random.key(1000 + seed))
+    ens = model.initial_ensemble(jax.random.key(2000 + seed), 1000)
+    r = csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(3000 + seed),
+                       config=CSFConfig(prior=PriorConfig(mixture=mix)), check_finite=False)
+    return float(jnp.sqrt(jnp.mean(jnp.square(r.mean - truth[1:])))), r
+
+
+@pytest.mark.parametrize("seed", [2, 9])
+def test_an_exponential_drift_loses_no_run_to_the_shock_members(seed):
+    """Lotka-Volterra with the predators unseen (the zoo's ``lotka_volterra``, N = 1000): on these
+    runs shock members widened along every direction, kept however far their forecasts go
+    (``shock_span="isotropic"``, ``wild_ranges=0``), carry the ensemble off to RMSE 1e6 or
+    more, finite and silent; the default (shocks widened along what the sensor sees,
+    ``shock_unseen=4``, wild members dropped) tracks the truth as the particle filter does."""
+    rmse, r = _lotka_volterra_run(seed, MixtureConfig())
+    assert bool(r.finite.all()) and rmse < 0.3
+    assert int(r.info["dropped"].sum()) == 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [2, 9])
+def test_an_exponential_drift_with_isotropic_shocks_kept_whole_is_lost(seed):
+    """The counterpart of ``test_an_exponential_drift_loses_no_run_to_the_shock_members``: the
+    isotropic shocks without the drop of wild members wreck the same runs; with the drop alone,
+    they finish finite (its members counted)."""
+    rmse, r = _lotka_volterra_run(seed, MixtureConfig(shock_span="isotropic", wild_ranges=0.0))
+    assert not (bool(r.finite.all()) and rmse < 10.0)
+    rmse, r = _lotka_volterra_run(seed, MixtureConfig(shock_span="isotropic"))
+    assert bool(r.finite.all()) and int(r.info["dropped"].sum()) > 0
 
 
 def test_mixture_particles_without_a_process_noise_covariance_are_refused():

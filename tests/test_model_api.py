@@ -231,7 +231,7 @@ def test_csf_reports_its_mixture_weights_and_is_reproducible():
     ens = model.initial_ensemble(jax.random.key(1), 64)
     run = lambda: csf_jax.filter(None, obs, ens, model=model, key=jax.random.key(2))
     result = run()
-    assert set(result.info) == {"particle_weight", "shock_weight"}
+    assert set(result.info) == {"particle_weight", "shock_weight", "dropped"}
     for v in result.info.values():
         assert v.shape == (8,) and bool(((v >= 0) & (v <= 1)).all())
     np.testing.assert_array_equal(result.mean, run().mean)

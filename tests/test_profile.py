@@ -63,7 +63,7 @@ def test_block_has_a_table_per_route():
     text = "\n".join(profile.page(record))
     assert text.count("| stage, ms (share of the whole step) |") == 2
     assert "| d = 1, N = 50 | d = 10, N = 50 |" in text
-    assert "| propagation (drift + process noise) | 1 (10%) |" in text
+    assert "| propagation (drift + process noise, wild members dropped) | 1 (10%) |" in text
     assert "| other (whole step - stages) | 3 (30%) |" in text
     assert "| whole step's compile, s | 2.5 | 2.5 |" in text
     assert "| members drawn from the particle / ensemble / shock components | 40 / 10 / 0 |" \

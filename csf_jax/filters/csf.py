@@ -414,6 +414,9 @@ def _step(model: StateSpaceModel, static: CSFStatic, params, state, y, key, time
     if config.prior.mixture is None or not uses_kalman(config):
         post = sample(params, context, y, x_init, start, k_rev, guide)
         return (post, memory), _output(post, jnp.all(jnp.isfinite(prior_ens)))
+    wild = mixture.wild_members(prior_ens, config.prior.mixture.wild_ranges)
+    (centers, prior_ens), dropped = mixture.tame(jax.random.fold_in(key, 4), wild, centers,
+                                                 prior_ens)
     moments = ensemble_moments(prior_ens, covariance=config.prior.covariance)
     odds = config.prior.mixture.particle_logodds + memory
     transport = mixture.transports(config.prior.mixture, prior.name)
@@ -430,7 +433,8 @@ def _step(model: StateSpaceModel, static: CSFStatic, params, state, y, key, time
         block = mixture.row_block(ens.shape[0]) if static.shards == 1 else None
         post = mixture.fill_rows(sel.kind == 1, fill, post, block)
     memory, _ = mixture.next_odds(config.prior.mixture, memory, sel.log_bf, sel.informed)
-    info = {"particle_weight": sel.particle_weight, "shock_weight": sel.shock_weight}
+    info = {"particle_weight": sel.particle_weight, "shock_weight": sel.shock_weight,
+            "dropped": dropped}
     kept = jnp.all(jnp.isfinite(prior_ens)) & jnp.all(jnp.isfinite(moments.cov))
     return (post, memory), _output(post, kept, info, sel.log_evidence)
 

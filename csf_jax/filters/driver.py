@@ -58,7 +58,7 @@ class StepOutput(NamedTuple):
     ensemble: (N, d) the posterior ensemble (kept only with ``return_ensembles``), or None.
     info: dict of per-step diagnostics, stacked over steps into ``FilterResult.info`` (which
       lists what each filter reports): CSF's mixture weights ``particle_weight`` and
-      ``shock_weight`` (scalars), the Kalman filter's ``cov`` (d, d); the particle filter's
+      ``shock_weight`` (scalars) and its ``dropped`` members (an int32 count), the Kalman filter's ``cov`` (d, d); the particle filter's
       ``ess`` (a scalar) goes to ``FilterResult.ess`` instead.
     log_evidence: the scalar ``log p(y_k | y_1 .. y_{k-1})`` (``csf_jax.evidence``), or None where
       the filter does not estimate it.
@@ -264,6 +264,7 @@ def _finished(name: str, result: FilterResult, check_finite: bool) -> FilterResu
     """A concrete run's result after its warning (collapsed weights) and, with
     ``check_finite``, its FloatingPointError (a diverged run)."""
     warn_if_collapsed(name, result.ess)
+    warn_if_dropped(name, None if result.info is None else result.info.get("dropped"))
     if check_finite:
         _checks.check_result_finite(name, result)
     return result
@@ -315,6 +316,27 @@ def warn_if_collapsed(name: str, ess) -> None:
         f"particle; use more particles, a wider likelihood (a larger observation noise), or "
         f"another filter (csf_jax.filter, csf_jax.ensemble_kalman_filter)",
         RuntimeWarning, stacklevel=_caller_level())
+
+
+def warn_if_dropped(name: str, dropped) -> None:
+    """After a concrete run: one ``RuntimeWarning`` naming the first step at which members'
+    forecasts went wild and were dropped (``dropped (K,)``, CSF's ``info["dropped"]``:
+    ``mixture.wild_members``), how many, and at how many steps. Such a run is finite, and may
+    still be sound, but the model carried members off the state space: the filter's numbers there
+    rest on the members left. Silent for None and under jit/vmap."""
+    if dropped is None or not _checks.is_concrete(dropped):
+        return
+    dropped = np.asarray(dropped)
+    if not dropped.any():
+        return
+    k = int(np.argmax(dropped > 0))
+    warnings.warn(
+        f"{name}: {int(dropped[k])} member(s) went wild at step {k + 1} of {dropped.shape[0]} "
+        f"(a forecast non-finite, or more than MixtureConfig.wild_ranges central ranges off the "
+        f"ensemble) and were dropped ({int(dropped.sum())} at {int((dropped > 0).sum())} "
+        f"step(s); result.info['dropped']); a model with an explosive drift does this to a "
+        f"shock member: check the run, or switch the shocks off (MixtureConfig(shock_hazard=0.0), "
+        f"docs/choosing.md)", RuntimeWarning, stacklevel=_caller_level())
 
 
 _PACKAGE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -32,7 +32,9 @@ class FilterResult(NamedTuple):
 
         * CSF with the mixture prior (``PriorConfig.mixture``, the default):
           ``particle_weight`` and ``shock_weight``, each ``(K,)``, the posterior weights of the
-          mixture's particle and shock components (the ensemble component has the rest). CSF
+          mixture's particle and shock components (the ensemble component has the rest), and
+          ``dropped`` ``(K,)`` int32, the members whose forecast went wild and were replaced
+          (``MixtureConfig.wild_ranges``; a concrete call warns where it is not 0). CSF
           without the mixture (``csf_jax.PAPER``): None; it has no bandwidth or other per-step
           setting to report.
         * The Kalman filter's step reports ``cov`` ``(K, d, d)``, the filtered covariances;

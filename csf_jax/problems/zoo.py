@@ -1,6 +1,6 @@
 """Models beyond the paper's table: the benchmark of unseen models (``python -m experiments.zoo``).
 
-Eight classic filtering problems, each small enough for a near-exact reference (a bootstrap
+Nine classic filtering problems, each small enough for a near-exact reference (a bootstrap
 particle filter with 10^5 particles for d <= 4; the Kalman filter for the linear one):
 
 * ``pendulum``: the README's example, a pendulum seen through its angle.
@@ -14,6 +14,8 @@ particle filter with 10^5 particles for d <= 4; the Kalman filter for the linear
 * ``stochastic_volatility``: an AR(1) log-variance seen through ``y = exp(x / 2) eps``, a
   non-additive likelihood.
 * ``poisson_counts``: two coupled log-intensities seen through Poisson counts.
+* ``lotka_volterra``: predators and prey in log-populations, the prey counted (Poisson): an
+  exponential drift, the predators never seen.
 * ``linear20``: a linear-Gaussian model in d = 20 observed at every other coordinate.
 
 Three models of moderate dimension where nonlinearity meets dimension (the particle filter's
@@ -305,6 +307,40 @@ def poisson_counts(c: PoissonConfig = PoissonConfig()) -> StateSpaceModel:
 
 
 @dataclasses.dataclass(frozen=True)
+class LotkaVolterraConfig:
+    """Predators and prey in log-populations ``(u, v)``, an Euler step of ``u' = a - b exp(v)``,
+    ``v' = d exp(u) - c`` (time step ``dt``), prey counts ``y ~ Poisson(exp(u))``; the predators
+    are never seen. The drift is exponential in the state: a member placed far up the unseen
+    predator axis drives the prey to ``-1e13`` within a step."""
+
+    a: float = 1.0
+    b: float = 0.1
+    c: float = 1.5
+    d: float = 0.075
+    dt: float = 0.05
+    process_std: float = 0.05
+    start: tuple = (2.3, 1.6)
+    start_std: float = 0.2
+    num_steps: int = 100
+
+    def __post_init__(self):
+        _checks.check_fields(self, positive=("a", "b", "c", "d", "dt", "process_std",
+                                             "start_std", "num_steps"))
+        _numbers(self, "start", (2,))
+
+
+@functools.cache
+def lotka_volterra(c: LotkaVolterraConfig = LotkaVolterraConfig()) -> StateSpaceModel:
+    def drift(x):
+        u, v = x[0], x[1]
+        return jnp.stack([u + c.dt * (c.a - c.b * jnp.exp(v)), v + c.dt * (c.d * jnp.exp(u) - c.c)])
+
+    truth, ensemble = _gaussian_start(c.start, c.start_std)
+    return StateSpaceModel("lotka_volterra", 2, 1, c.num_steps, c.dt, drift, lambda x: x[:1],
+                           c.process_std, poisson_likelihood(), truth, ensemble)
+
+
+@dataclasses.dataclass(frozen=True)
 class Linear20Config:
     """``csf_jax.problems.linear.linear_gaussian(20)`` observed at every other coordinate."""
 
@@ -416,12 +452,14 @@ def lorenz96_sensor(c: Lorenz96SensorConfig = Lorenz96SensorConfig()) -> StateSp
 
 BUILDERS = {PendulumConfig: pendulum, Lorenz63Config: lorenz63, BearingsConfig: bearings,
             FoldingConfig: folding, UNGMConfig: ungm, VolatilityConfig: stochastic_volatility,
-            PoissonConfig: poisson_counts, Linear20Config: linear20, WellChainConfig: well_chain,
+            PoissonConfig: poisson_counts, LotkaVolterraConfig: lotka_volterra,
+            Linear20Config: linear20, WellChainConfig: well_chain,
             Lorenz96SensorConfig: lorenz96_sensor}
 
 CONFIGS = {"pendulum": PendulumConfig(), "lorenz63_gaps": Lorenz63Config(),
            "bearings": BearingsConfig(), "folding": FoldingConfig(), "ungm": UNGMConfig(),
            "stochastic_volatility": VolatilityConfig(), "poisson_counts": PoissonConfig(),
+           "lotka_volterra": LotkaVolterraConfig(),
            "linear20": Linear20Config(), "well_chain": WellChainConfig(),
            "lorenz96_abs": Lorenz96SensorConfig(),
            "lorenz96_square": Lorenz96SensorConfig(name="lorenz96_square", dim=20,
