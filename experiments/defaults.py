@@ -50,6 +50,8 @@ CANDIDATES = {
     # the default with shock members only where a jump is the more probable reading
     # (``MixtureConfig.shock_gate``)
     "gated": _mixture(shock_gate=0.5),
+    # the same at a jump probability of 2%: shock members only where a jump is not a long shot
+    "gated0.02": _mixture(shock_gate=0.02),
     # the default with shocks widened along every direction, also those the sensor does not
     # see (``MixtureConfig.shock_span``)
     "isotropic": _mixture(shock_span="isotropic"),
