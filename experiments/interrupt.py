@@ -26,10 +26,15 @@ CHILDREN: set = set()
 
 CACHED = "cached cells are kept, rerun to resume"
 
+STOPPING = threading.Event()
+"""Set by an interrupt before it stops the children: the main thread, woken by a killed child,
+must not run on to a normal exit (status 0) before the interrupt ends the process (130)."""
+
 
 def _stop(prog: str, note: str | None) -> None:
     """After the write in flight: stop the children, flush stdout, print the line, exit 130."""
     with WRITING:
+        STOPPING.set()
         for child in list(CHILDREN):
             with contextlib.suppress(OSError):
                 child.kill()
@@ -67,6 +72,8 @@ def stopping(prog: str, note: str | None = None):
     try:
         yield
     finally:
+        if STOPPING.is_set():  # the interrupt ends the process: wait for it
+            threading.Event().wait()
         signal.signal(signal.SIGINT, old_handler)
         signal.set_wakeup_fd(old_fd)
         os.close(write)
