@@ -160,7 +160,7 @@ def kalman_tweedie(x0_hat, prior_precision, loglik_fn, observe_fn, weight_fn, u_
         jac = jax.jacfwd(observe_fn)(u)
         weight = weight_fn(u)
         grad = jax.grad(loglik_fn)(u)
-        chol = _linalg.cholesky(precision + guide * _weighted_gram(
+        chol = _linalg.cholesky(precision + guide * weighted_gram(
             jac, jnp.where(jnp.isfinite(weight), weight, 0.0)))
         return chol, precision @ (x0h - u) + guide * jnp.where(jnp.isfinite(grad), grad, 0.0)
 
@@ -221,7 +221,7 @@ def quadratic_along(matrix, point, direction, fractions):
     return point @ mp + fractions * (2.0 * (direction @ mp) + fractions * (direction @ mv))
 
 
-def _weighted_gram(jac, weight):
+def weighted_gram(jac, weight):
     """``J^T W J`` for ``jac (m, d)`` and weights ``(m,)`` (diagonal W) or ``(m, m)``."""
     if weight.ndim == 1:
         return (jac.T * weight) @ jac

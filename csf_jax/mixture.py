@@ -66,7 +66,13 @@ from jax.scipy.special import logsumexp
 
 from csf_jax import _checks, _linalg
 from csf_jax._batch import batch_max
-from csf_jax.guidance import importance_weights, kalman_tweedie, quadratic_along
+from csf_jax.guidance import (
+    importance_weights,
+    kalman_tweedie,
+    particle_map,
+    quadratic_along,
+    weighted_gram,
+)
 from csf_jax.sde import SIGMA_MAX, marginal_std_host, noise_levels
 from csf_jax.ssm import (
     StateSpaceModel,
@@ -86,6 +92,7 @@ MIN_ROW_BLOCK = 16
 # 64 full steps (where the sensor is flatter than at the mode, the mode's curvature makes the
 # step short) down to 2^-12 (where it is steeper, long), and 0
 TRANSPORT_STEPS = tuple(2.0 ** k for k in range(6, -13, -1)) + (0.0,)
+TRANSPORT_FLOWS = ("member", "mode")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -114,9 +121,8 @@ class MixtureConfig:
         variance. Observed, by measurement (docs/defaults.md, the "isotropic" candidate): only
         the observed entries can tell a jump from the ensemble, and an isotropic shock that
         explains them also spreads members up to 64 spreads along the unseen directions, where
-        an exponential drift carries them off (the zoo's ``lotka_volterra``: 1.26x the better
-        of PF and EnKF isotropic, 0.99x observed). A model whose state is seen whole (the
-        paper's) is the same either way.
+        an exponential drift carries them off (the zoo's ``lotka_volterra``). A model whose
+        state is seen whole (the paper's) is the same either way.
       shock_unseen: with ``shock_span="observed"``, the largest widening of the directions the
         observation does not see, a multiple of the ensemble's mean variance (each shock's own
         scale below it): 0 keeps the ensemble's spread there; 4 (the smallest shock's scale,
@@ -160,6 +166,16 @@ class MixtureConfig:
         found, and loses runs where the sensor cannot tell a state's sign (Lorenz-96 seen through
         ``x^2``, the UNGM).
       transport_iterations: damped Gauss-Newton steps of each member's Tweedie estimate per level.
+      transport_flow: how ``flow_transport`` moves a member from one level to the next.
+        "member": from its own Tweedie estimate, each Gauss-Newton step with the curvature of
+        the sensor at the member (a (d, d) Cholesky factorisation per member, level and step).
+        "mode": with the curvature at the posterior's mode shared by every member, then the exact
+        flow of the Gaussian linearised at the member. Both are the single map under a linear
+        sensor. Member, by measurement (docs/defaults.md, the "mode_flow" candidate): with a
+        sensor whose curvature changes across the ensemble (``x^3`` under a broad prior) and
+        more than a few dimensions, the shared curvature and the one step fraction a member's
+        line search picks for all its coordinates leave members spreads away from the
+        posterior (the paper's 20-D problem).
       wild_ranges: a propagated member is dropped (``wild_members``: replaced by a copy of another,
         counted in the result's ``info["dropped"]``, and warned of after a concrete call) where its
         forecast is non-finite or lies more than this many central ranges (5-95%) of the ensemble
@@ -195,6 +211,7 @@ class MixtureConfig:
     ensemble_draws: str = "transport"
     transport_levels: int = 10
     transport_iterations: int = 1
+    transport_flow: str = "member"
     wild_ranges: float = 1e3
 
     def __post_init__(self):
@@ -238,6 +255,9 @@ class MixtureConfig:
         levels = self.transport_levels
         if isinstance(levels, bool) or not isinstance(levels, int) or levels < 0:
             raise ValueError(f"MixtureConfig.transport_levels must be an int >= 0, got {levels!r}")
+        if self.transport_flow not in TRANSPORT_FLOWS:
+            raise ValueError(f"MixtureConfig.transport_flow must be one of {TRANSPORT_FLOWS}, got "
+                             f"{self.transport_flow!r}")
         if self.shock_span not in ("observed", "isotropic"):
             raise ValueError(f"MixtureConfig.shock_span must be 'observed' or 'isotropic', got "
                              f"{self.shock_span!r}")
@@ -492,9 +512,12 @@ def transported(model: StateSpaceModel, config: MixtureConfig, key, y, prior_ens
     def fill(idx):
         members = jnp.take(chosen, idx, axis=0, mode="clip")
         if config.transport_levels > 0:
+            own = config.transport_flow == "member"
             return flow_transport(members, cov, u, chol, prior_prec,
                                   lambda x: guide * log_likelihood(model, y, x),
-                                  transport_levels(config), config.transport_iterations, mean)
+                                  transport_levels(config), config.transport_iterations, mean,
+                                  model.observe if own else None,
+                                  (lambda x: guide * curvature(model, y, x)) if own else None)
         return gaussian_transport(members, cov, u, chol, mean)
 
     return fill_rows(kind == 1, fill, draws, row_block(n))
@@ -566,12 +589,13 @@ def gaussian_transport(prior_ens, cov, u, chol, mean=None):
     ``cov = L L^T``.
 
     The map is linear, so the members' mean goes to ``u``, and it takes ``cov`` to exactly
-    ``A^{-1}`` (``mean (d,)``: m, None for the members' own mean). Among such maps it is the one symmetric in the whitened coordinates
-    ``L^{-1} (x - m)``, which moves them least: with ``cov`` the members' sample covariance and a
-    linear sensor it is the ensemble transform Kalman filter's symmetric square root (Hunt et al.
-    2007; ``tests/test_mixture.py``). Each member keeps its own deviation, so what the prior holds
-    beyond its two moments (skew, a curved attractor) is carried into the posterior, where fresh
-    draws from ``N(u, A^{-1})`` would drop it. Matrix products and triangular solves only
+    ``A^{-1}`` (``mean (d,)``: m, None for the members' own mean). Among such maps it is the one
+    symmetric in the whitened coordinates ``L^{-1} (x - m)``, which moves them least: with
+    ``cov`` the members' sample covariance and a linear sensor it is the ensemble transform
+    Kalman filter's symmetric square root (Hunt et al. 2007; ``tests/test_mixture.py``). Each
+    member keeps its own deviation, so what the prior holds beyond its two moments (skew, a
+    curved attractor) is carried into the posterior, where fresh draws from ``N(u, A^{-1})``
+    would drop it. Matrix products and triangular solves only
     (``inverse_sqrt``): no LAPACK call inside the filter's scan (docs/design.md).
     """
     mean = prior_ens.mean(0) if mean is None else mean
@@ -591,7 +615,7 @@ def transport_levels(config: MixtureConfig):
 
 @_linalg.precise
 def flow_transport(prior_ens, cov, u, chol, prior_prec, loglik, levels, iterations: int,
-                   mean=None):
+                   mean=None, observe=None, weight=None):
     """``prior_ens (N, d)`` moved down the probability flow of the VE SDE onto the posterior
     ``N(m, B) p(y | x)`` of the ensemble component (prior mean m, the members' mean; prior
     precision ``prior_prec = B^{-1} (d, d)``; ``loglik: x (d,) -> log p(y | x)``, weighted by the
@@ -604,25 +628,39 @@ def flow_transport(prior_ens, cov, u, chol, prior_prec, loglik, levels, iteratio
       the prior's flow and across to the diffused Laplace posterior;
     * **each level** ``s -> s'``: the member's Tweedie estimate ``t_n``, the maximiser of
       ``log N(t; 0, B_z) + log p(y | t) - |t - z_n|^2 / (2 s^2)``, by ``iterations`` damped
-      Gauss-Newton steps (the gradient at the member's own point, the Laplace curvature ``A_z``,
-      the best of the step fractions ``TRANSPORT_STEPS``), warm-started from the level above
-      (at the top, from ``e_n``: the member's own propagated point, so that it looks for the
-      posterior on its own side); the centre ``mu_n`` of the
-      Gaussian linearised at ``t_n``, one Newton step ``t_n + P grad`` of the posterior, searched
-      along the same way;
-      then the exact flow of that Gaussian, ``z_n <- mu_n + (P + s'^2)^{1/2} (P + s^2)^{-1/2}
-      (z_n - mu_n)``.
+      Gauss-Newton steps (the gradient at the member's own point, the best of the step fractions
+      ``TRANSPORT_STEPS``), warm-started from the level above (at the top, from ``e_n``: the
+      member's own propagated point, so that it looks for the posterior on its own side); then
+      the member moves to level ``s'``, in one of two ways (``MixtureConfig.transport_flow``):
 
-    With a linear sensor and Gaussian noise every ``mu_n`` is ``z*`` and the maps telescope to
-    ``z* + P^{1/2} e_n``: ``gaussian_transport``, whatever the levels (tested). Otherwise each
-    member follows the posterior's gradient where it is: a member that starts on the side of a
-    second mode (a state the sensor sees only up to its sign) ends in that mode, where the single
-    map at the mode moves every member into the one the Gauss-Newton steps found. The line search
-    keeps a steep sensor (``x^2``, ``x^3``) from throwing a member past the posterior, and lets a
-    member where the sensor is flatter than at the mode travel further. A member that starts at a
-    point where the likelihood's gradient vanishes (a cubic sensor's 0, against an observation
-    far from it) can stay caught there (tested). Matrix
-    functions by ``inverse_sqrt``, triangular solves by ``_linalg``: no LAPACK call in the scan.
+      - ``observe`` and ``weight`` given ("member"): each Gauss-Newton step with the member's
+        own curvature ``B_z + L^T J^T W J L + I / s^2`` (``J = dh/dx`` at the member's estimate,
+        ``W = weight(x)``: per-coordinate weights (m,) or a precision (m, m), as
+        ``kalman_tweedie`` takes them), then ``z_n <- t_n + K (z_n - t_n)`` with ``K = ((P +
+        s'^2)^{1/2} (P + s^2)^{1/2} - P) / s^2``: the exact flow of a Gaussian posterior written
+        from its Tweedie estimate (the probability flow's DDIM step ``s' / s`` where ``P`` is
+        negligible against ``s^2``, which with 10 levels narrows the ensemble by 15% even under a
+        linear sensor);
+      - without ("mode"): each step with the curvature at the mode, ``A_z + I / s^2``, shared by
+        every member; the centre ``mu_n`` of the Gaussian linearised at ``t_n``, one Newton step
+        ``t_n + P grad`` of the posterior, searched along the same way; then the exact flow of
+        that Gaussian, ``z_n <- mu_n + (P + s'^2)^{1/2} (P + s^2)^{-1/2} (z_n - mu_n)``.
+
+    With a linear sensor and Gaussian noise every ``mu_n`` is ``z*``, every ``t_n`` the exact
+    Tweedie estimate, and both ways telescope to ``z* + P^{1/2} e_n``: ``gaussian_transport``,
+    whatever the levels (tested).
+    Otherwise each member follows the posterior's gradient where it is: a member that starts on
+    the side of a second mode (a state the sensor sees only up to its sign) ends in that mode,
+    where the single map at the mode moves every member into the one the Gauss-Newton steps
+    found. The line search keeps a steep sensor (``x^2``, ``x^3``) from throwing a member past
+    the posterior. Under the shared curvature it also lets a member where the sensor is flatter
+    than at the mode travel further, but with one fraction for all of a member's coordinates:
+    where the sensor's curvature varies across coordinates and members (``x^3``, d = 10 and a
+    broad prior) members stay far from the posterior, which the member's own curvature avoids
+    (docs/defaults.md). A member that starts at a point where the likelihood's gradient
+    vanishes (a cubic sensor's 0, against an observation far from it) can stay caught there
+    (tested). Matrix functions by ``inverse_sqrt``, factorisations and triangular solves by
+    ``_linalg``: no LAPACK call in the scan.
     """
     d = prior_ens.shape[1]
     dtype = prior_ens.dtype
@@ -636,10 +674,19 @@ def flow_transport(prior_ens, cov, u, chol, prior_prec, loglik, levels, iteratio
     b_z = lower.T @ prior_prec @ lower                                      # B_z^{-1}
     z_star = _linalg.solve_lower(lower, (u - mean)[None])[0]
     fractions = jnp.asarray(TRANSPORT_STEPS, dtype)
+    own = observe is not None
 
     def grad(z):
         g = jax.grad(loglik)(mean + lower @ z)
         return -b_z @ z + lower.T @ jnp.where(jnp.isfinite(g), g, 0.0)
+
+    def curvature_at(z):
+        # B_z + L^T J^T W J L at the member's point (the sensor's Gauss-Newton curvature there)
+        x = mean + lower @ z
+        jac = jax.jacfwd(observe)(x) @ lower
+        w = weight(x)
+        return b_z + weighted_gram(jnp.where(jnp.isfinite(jac), jac, 0.0),
+                                    jnp.where(jnp.isfinite(w), w, 0.0))
 
     def search(t, direction, extra=0.0):
         # the log posterior (plus ``extra (S,)``) at t + a direction for each step fraction a, its
@@ -650,7 +697,11 @@ def flow_transport(prior_ens, cov, u, chol, prior_prec, loglik, levels, iteratio
         return t + fractions[jnp.argmax(jnp.where(jnp.isnan(value), -jnp.inf, value))] * direction
 
     def tweedie(t, z, s, solve):
-        direction = (grad(t) - (t - z) / s ** 2) @ solve
+        rhs = grad(t) - (t - z) / s ** 2
+        if own:
+            direction = _linalg.cho_solve(_linalg.cholesky(curvature_at(t) + eye / s ** 2), rhs)
+        else:
+            direction = rhs @ solve
         return search(t, direction,
                       -quadratic_along(None, t - z, direction, fractions) / (2.0 * s ** 2))
 
@@ -661,15 +712,25 @@ def flow_transport(prior_ens, cov, u, chol, prior_prec, loglik, levels, iteratio
         return a @ inverse_sqrt(a)
 
     sig = jnp.asarray(levels, dtype)
-    maps = jax.vmap(lambda s, s_next: sqrtm(p + s_next ** 2 * eye) @ inverse_sqrt(p + s ** 2 * eye))(
-        sig[:-1], sig[1:])                                                  # (L, d, d) symmetric
-    solves = precision(a_z[None] + eye[None] / sig[:-1, None, None] ** 2)   # (L, d, d)
+    if own:  # the flow's step from the member's Tweedie estimate; no shared solves
+        maps = jax.vmap(lambda s, s_next: (sqrtm(p + s_next ** 2 * eye) @ sqrtm(p + s ** 2 * eye)
+                                           - p) / s ** 2)(sig[:-1], sig[1:])  # (L, d, d)
+        solves = jnp.zeros((sig.shape[0] - 1, 0), dtype)
+    else:
+        maps = jax.vmap(lambda s, s_next: sqrtm(p + s_next ** 2 * eye)
+                        @ inverse_sqrt(p + s ** 2 * eye))(sig[:-1], sig[1:])  # (L, d, d)
+        solves = precision(a_z[None] + eye[None] / sig[:-1, None, None] ** 2)  # (L, d, d)
 
     def level(carry, xs):
         z, t = carry
         s, flow, solve = xs
         for _ in range(iterations):
-            t = jax.vmap(tweedie, in_axes=(0, 0, None, None))(t, z, s, solve)
+            if own:  # a factorisation per member: in blocks that stay in the caches
+                t = particle_map(lambda tz: tweedie(*tz, s, solve), (t, z))
+            else:
+                t = jax.vmap(tweedie, in_axes=(0, 0, None, None))(t, z, s, solve)
+        if own:
+            return (t + (z - t) @ flow, t), None
         mu = jax.vmap(centre)(t)
         return (mu + (z - mu) @ flow, t), None
 

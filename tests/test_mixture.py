@@ -292,6 +292,7 @@ def test_bad_mixture_config_is_refused():
                 dict(particle_kernel=float("nan")), dict(ensemble_draws="fresh"),
                 dict(transport_levels=-1), dict(transport_levels=True),
                 dict(transport_levels=2.0), dict(transport_iterations=0),
+                dict(transport_flow="exact"), dict(transport_flow=None),
                 dict(shock_gate=1.0), dict(shock_gate=-0.1), dict(shock_gate=float("nan")),
                 dict(shock_unseen=-1.0), dict(shock_unseen=float("inf")),
                 dict(wild_ranges=-1.0), dict(wild_ranges=float("nan"))):
@@ -569,9 +570,11 @@ def test_gaussian_transport_is_the_etkf_for_a_linear_sensor(x64):
 
 
 def test_flow_transport_is_the_single_map_for_a_linear_sensor(x64):
-    """With a linear sensor and Gaussian noise every level's centre is the mode, and the flow's
-    maps telescope to the single linear map (``gaussian_transport``), with an inflated prior
-    precision too; a broken level map or centre would leave a residual of the ensemble's size."""
+    """With a linear sensor and Gaussian noise every level's centre is the mode and every
+    member's Tweedie estimate exact, and the flow's maps telescope to the single linear map
+    (``gaussian_transport``), with an inflated prior precision too, whether each member's
+    curvature is its own or the mode's; a broken level map, centre or Tweedie step would leave
+    a residual of the ensemble's size."""
     lg = linear_gaussian(4, 3, r_std=0.4)
     model = to_model(lg)
     rng = np.random.default_rng(3)
@@ -585,11 +588,15 @@ def test_flow_transport_is_the_single_map_for_a_linear_sensor(x64):
         lg.H.T @ np.linalg.solve(lg.obs_cov(), np.asarray(y))))
     chol = jnp.linalg.cholesky(a)
     single = mixture.gaussian_transport(ens, cov, u, chol)
+    weight = lambda x: csf_jax.ssm.curvature(model, y, x)
     for config in (MixtureConfig(), MixtureConfig(transport_levels=3, transport_iterations=2)):
-        flow = mixture.flow_transport(ens, cov, u, chol, prior_prec, loglik,
-                                      mixture.transport_levels(config),
-                                      config.transport_iterations)
-        np.testing.assert_allclose(np.asarray(flow), np.asarray(single), atol=1e-9)
+        for own in (False, True):  # the members' own curvature ("member"), the mode's
+            flow = mixture.flow_transport(ens, cov, u, chol, prior_prec, loglik,
+                                          mixture.transport_levels(config),
+                                          config.transport_iterations, None,
+                                          model.observe if own else None,
+                                          weight if own else None)
+            np.testing.assert_allclose(np.asarray(flow), np.asarray(single), atol=1e-9)
 
 
 def _sign_blind_case(n=400, y=1.0, r=0.05):
@@ -638,6 +645,50 @@ def test_flow_transport_stays_finite_under_a_steep_sensor_far_from_the_members()
     far = np.abs(np.asarray(ens)[:, 0]) > 0.5
     np.testing.assert_allclose(moved[far], 10.0, atol=0.15)
     assert far.mean() > 0.6
+
+
+def _exact_cubic_posterior(y, m, s, r):
+    """Per coordinate: the mean and std of ``N(x; m, s^2) N(y; x^3, r^2)`` by quadrature."""
+    grid = np.linspace(m - 6 * s, m + 6 * s, 40001)
+    log_p = -0.5 * ((grid - m) / s) ** 2 - 0.5 * ((np.asarray(y, np.float64)[:, None] - grid ** 3)
+                                                  / r) ** 2
+    w = np.exp(log_p - log_p.max(-1, keepdims=True))
+    w /= w.sum(-1, keepdims=True)
+    mean = (w * grid).sum(-1)
+    return mean, np.sqrt((w * (grid - mean[:, None]) ** 2).sum(-1))
+
+
+def test_flow_transport_through_a_cubic_sensor_under_a_broad_prior():
+    """d = 10 independent coordinates, prior ``N(0.4, 1)``, sensor ``x^3`` with noise 0.1: the
+    posterior is narrow where ``|y|`` is large (std 0.01) and wide near 0 (0.3), so the sensor's
+    curvature varies by orders of magnitude across members and coordinates. With each member's
+    own curvature ("member") the moved members' mean is the exact posterior mean to about 0.05 per
+    coordinate and the bulk of their spread (the central 80%) is the exact one's; with the
+    curvature at the mode ("mode") they stay spreads away (0.48 on average)."""
+    d, n, m, s, r = 10, 400, 0.4, 1.0, 0.1
+    k_truth, k_noise, k_ens = jax.random.split(jax.random.key(1), 3)
+    y = (m + s * jax.random.normal(k_truth, (d,))) ** 3 + r * jax.random.normal(k_noise, (d,))
+    ens = m + s * jax.random.normal(k_ens, (n, d))
+    cov, mean = jnp.cov(ens.T), ens.mean(0)
+    prec = jnp.linalg.inv(cov)
+    loglik = lambda x: -0.5 * jnp.sum(((y - x ** 3) / r) ** 2)
+    weight = lambda x: jnp.full((d,), 1.0 / r ** 2)
+    u, chol = mixture.kalman_tweedie(mean[None], prec, loglik, lambda x: x ** 3, weight,
+                                     mean[None], 1.0, 12, damped=True)
+    exact_mean, exact_std = _exact_cubic_posterior(y, m, s, r)
+
+    def moved(own):
+        return np.asarray(jax.jit(lambda: mixture.flow_transport(
+            ens, cov, u[0], chol[0], prec, loglik, mixture.transport_levels(MixtureConfig()), 1,
+            mean, (lambda x: x ** 3) if own else None, weight if own else None))())
+
+    member, mode = moved(True), moved(False)
+    assert np.all(np.isfinite(member))
+    assert np.mean(np.abs(member.mean(0) - exact_mean)) < 0.1
+    q10, q90 = np.quantile(member, [0.1, 0.9], axis=0)
+    width = (q90 - q10) / (2 * 1.2816 * exact_std)     # the central 80% against a Gaussian's
+    assert 0.6 < np.median(width) < 1.5, width
+    assert np.mean(np.abs(mode.mean(0) - exact_mean)) > 0.3
 
 
 def test_the_transport_moves_a_random_subset_of_the_members_and_skips_the_sampler(x64):

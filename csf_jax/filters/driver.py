@@ -19,8 +19,9 @@ builder (``csf_jax.methods``). The driver owns the rest:
 A ``Kernel`` is a NamedTuple of module-level functions, so it is hashable and a jitted scan is
 compiled once per (kernel, model, config). ``config`` is the method's static settings (hashable);
 ``params`` its array-valued ones (network weights, an inflation factor), traced: a ``Method`` is a
-pytree whose only leaves are its params, so ``jax.jit`` and ``jax.vmap`` take it as an argument. NaN in ``obs``
-means 'not observed' and reaches ``step`` as is: each method leaves it out of its update.
+pytree whose only leaves are its params, so ``jax.jit`` and ``jax.vmap`` take it as an argument.
+NaN in ``obs`` means 'not observed' and reaches ``step`` as is: each method leaves it out of its
+update.
 """
 
 from __future__ import annotations
@@ -58,8 +59,9 @@ class StepOutput(NamedTuple):
     ensemble: (N, d) the posterior ensemble (kept only with ``return_ensembles``), or None.
     info: dict of per-step diagnostics, stacked over steps into ``FilterResult.info`` (which
       lists what each filter reports): CSF's mixture weights ``particle_weight`` and
-      ``shock_weight`` (scalars) and its ``dropped`` members (an int32 count), the Kalman filter's ``cov`` (d, d); the particle filter's
-      ``ess`` (a scalar) goes to ``FilterResult.ess`` instead.
+      ``shock_weight`` (scalars) and its ``dropped`` members (an int32 count), the Kalman
+      filter's ``cov`` (d, d); the particle filter's ``ess`` (a scalar) goes to
+      ``FilterResult.ess`` instead.
     log_evidence: the scalar ``log p(y_k | y_1 .. y_{k-1})`` (``csf_jax.evidence``), or None where
       the filter does not estimate it.
     """
@@ -374,8 +376,8 @@ def _announce_compile(static: tuple, args: tuple, scan=None, dim: int | None = N
         return
     method, model = static[0], static[1]
     obs, state0 = args[-4], args[-3]
-    sizes = f"d={model.dim if dim is None else dim}, " + (f"N={jnp.shape(state0)[0]}, " if method.ensemble else "") + \
-        f"K={jnp.shape(obs)[0]}"
+    members = f"N={jnp.shape(state0)[0]}, " if method.ensemble else ""
+    sizes = f"d={model.dim if dim is None else dim}, {members}K={jnp.shape(obs)[0]}"
     label = method.label or method.name
     print(f"compiling the {label} filter ({sizes}) ...", file=sys.stderr, flush=True)
     t0 = time.perf_counter()
