@@ -58,9 +58,9 @@ CANDIDATES = {
     # the default with the ensemble component's members drawn afresh by the reverse-diffusion
     # sampler instead of transported (``MixtureConfig.ensemble_draws``)
     "sampler": _mixture(ensemble_draws="sampler"),
-    # the default with the transport's steps taken with the curvature at the posterior's mode,
-    # shared by every member, instead of each member's own (``MixtureConfig.transport_flow``)
-    "mode_flow": _mixture(transport_flow="mode"),
+    # the default with the transport's steps taken with each member's own curvature instead of
+    # the curvature at the posterior's mode (``MixtureConfig.transport_flow``)
+    "member_flow": _mixture(transport_flow="member"),
 }
 
 # (problem, runs): the table's columns where the candidates differ most, few runs each
