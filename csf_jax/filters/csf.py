@@ -624,4 +624,5 @@ def warn_if_large(model: StateSpaceModel, config: CSFConfig, prior: PriorScore,
                   f"see each step", RuntimeWarning, stacklevel=_caller_level())
 
 
-CSF = Kernel("csf_jax.filter", _init, _step, label="CSF", bind=_bind)
+CSF = Kernel("csf_jax.filter", _init, _step, label="CSF", bind=_bind,
+             discrete=True)

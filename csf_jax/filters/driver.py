@@ -40,6 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from csf_jax import _checks
+from csf_jax._batch import one_at_a_time
 from csf_jax.filters.result import FilterResult, mark_nonfinite
 from csf_jax.parametric import ParametricModel, cast_theta, checkable_model
 from csf_jax.ssm import (
@@ -97,6 +98,11 @@ class Kernel(NamedTuple):
     bind_checks: ``bind`` only checks the model (it changes nothing the scan reads: the LETKF's
       localisation against the sensor), so the kernel filters a ``ParametricModel`` too; a
       ``bind`` that reads the model's numbers (CSF's trained prior) cannot.
+    discrete: the step makes discrete choices (a resampled index, a line search's pick, a member
+      past a quantile), which turn the last-bit rounding of a batched run into a different run:
+      under ``jax.vmap`` its runs go one at a time (``_batch.one_at_a_time``), each bit for bit
+      its separate call. The other filters are smooth maps of their inputs: batched, they differ
+      from a separate call by float rounding only, and they stay differentiable.
     """
 
     name: str
@@ -109,6 +115,7 @@ class Kernel(NamedTuple):
     runner: Callable[..., FilterResult] | None = None
     parametric: Kernel | None = None
     bind_checks: bool = False
+    discrete: bool = False
 
 
 @functools.partial(jax.tree_util.register_dataclass, data_fields=["params"],
@@ -390,8 +397,10 @@ def _announce_compile(static: tuple, args: tuple, scan=None, dim: int | None = N
 @functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4))
 def _scan(method: Kernel, model: StateSpaceModel, config, return_ensembles: bool, progress,
           params, obs, state0, key, inputs) -> FilterResult:
-    return _filter_scan(method, model, config, return_ensembles, progress, params, obs, state0,
-                        key, inputs)
+    """The jitted scan of a run; a ``discrete`` kernel's runs go one at a time under
+    ``jax.vmap`` (``_batch.one_at_a_time``), so each gives what its separate call gives."""
+    scan = functools.partial(_filter_scan, method, model, config, return_ensembles, progress)
+    return (one_at_a_time(scan) if method.discrete else scan)(params, obs, state0, key, inputs)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4))

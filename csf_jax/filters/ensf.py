@@ -233,7 +233,7 @@ def _step(model: StateSpaceModel, static: ENSFStatic, params: ENSFParams, ensemb
     return post, StepOutput(post.mean(0), post.std(0, ddof=1), post)
 
 
-ENSF = Kernel("ensf", _init, _step, label="EnSF")
+ENSF = Kernel("ensf", _init, _step, label="EnSF", discrete=True)
 
 
 @_checks.renamed_keywords(problem="model")

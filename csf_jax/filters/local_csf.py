@@ -340,7 +340,8 @@ def _check(model: StateSpaceModel, config: LocalCSFConfig) -> None:
                          f"alternate in two colours around the ring")
 
 
-LOCAL_CSF = Kernel("local_filter", _init, _step, _check, label="local CSF")
+LOCAL_CSF = Kernel("local_filter", _init, _step, _check, label="local CSF",
+                   discrete=True)
 
 
 @_checks.renamed_keywords(problem="model")

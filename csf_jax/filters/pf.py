@@ -161,6 +161,6 @@ def _step_scored(model: StateSpaceModel, config, params, state, y, key, time):
                                             {"ess": effective_sample_size(log_w)}, log_evidence)
 
 
-PARTICLE_FILTER = Kernel("particle_filter", _init, _step, label="particle",
+PARTICLE_FILTER = Kernel("particle_filter", _init, _step, label="particle", discrete=True,
                          parametric=Kernel("particle_filter", _init_scored, _step_scored,
                                            label="particle"))

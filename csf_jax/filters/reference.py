@@ -147,7 +147,8 @@ def _check(model: StateSpaceModel, config: ReferenceConfig) -> None:
                          f"{config.particles} and {config.shock_draws}")
 
 
-REFERENCE = Kernel("reference_filter", _init, _step, _check, label="reference")
+REFERENCE = Kernel("reference_filter", _init, _step, _check, label="reference",
+                   discrete=True)
 
 
 def _candidate_weights(share, ll0, ll1):

@@ -112,7 +112,7 @@ def _check(model: StateSpaceModel, static: SFStatic) -> None:
                          f"equal the sampler's sigma_max ({static.sampler.sampler.sigma_max})")
 
 
-SCORE_FILTER = Kernel("score_filter", _init, _step, _check, label="SF")
+SCORE_FILTER = Kernel("score_filter", _init, _step, _check, label="SF", discrete=True)
 
 
 @_checks.renamed_keywords(problem="model")
