@@ -63,8 +63,10 @@ CANDIDATES = {
     "member_flow": _mixture(transport_flow="member"),
 }
 
-# (problem, runs): the table's columns where the candidates differ most, few runs each
-TABLE = (("triple_well", 4), ("double_well", 2), ("cauchy", 2), ("cubic10_corr", 2))
+# (problem, runs): the table's columns where the candidates differ most, few runs each; the 20-D
+# ones are where the transport's flow ("mode" or "member") matters most
+TABLE = (("triple_well", 4), ("double_well", 2), ("cauchy", 2), ("cubic10_corr", 2),
+         ("cubic20_indep", 2), ("cubic20_corr", 2))
 SMALL = [m for m in zoo.MODELS if m not in MODERATE]
 GROUPS = ("table", "zoo", "moderate")
 
