@@ -149,3 +149,20 @@ def test_moderate_zoo_models_are_sign_blind_and_stable():
         np.testing.assert_allclose(model.observe(x), model.observe(-x))
         assert model.obs_dim == model.dim // 2
     assert set(zoo.MODERATE) <= set(problems.ZOO)
+
+
+@pytest.mark.parametrize("name", [*problems.NAMES, *problems.ZOO])
+def test_a_model_first_built_inside_jit_works_outside_it(name):
+    # the builders are cached: what one keeps from a trace must not be a tracer
+    built = {}
+
+    @jax.jit
+    def trace(x):
+        built["model"] = problems.get(name, num_steps=3)
+        return x
+
+    trace(0.0)
+    model = problems.get(name, num_steps=3)
+    assert model is built["model"]
+    truth, obs = csf_jax.simulate(model, jax.random.key(0))
+    assert truth.shape == (4, model.dim) and bool(jnp.isfinite(truth).all())

@@ -71,10 +71,11 @@ def coupling_matrix(dim: int) -> np.ndarray:
 def cubic_problem(config: CubicConfig = CubicConfig()) -> StateSpaceModel:
     """The cubic-sensor ``StateSpaceModel``; cached, so equal configs give the same model."""
     c = config
-    a = jnp.asarray(coupling_matrix(c.dim)) if c.correlated else None
+    # a host array: a model first built inside a ``jax.jit`` trace must not keep a tracer
+    a = coupling_matrix(c.dim) if c.correlated else None
 
     def drift(x):
-        f = jnp.cos(x) if a is None else a @ x + jnp.cos(x)
+        f = jnp.cos(x) if a is None else jnp.asarray(a) @ x + jnp.cos(x)
         return x + f * c.dt
 
     def observe(x):
