@@ -92,7 +92,7 @@ MIN_ROW_BLOCK = 16
 # 64 full steps (where the sensor is flatter than at the mode, the mode's curvature makes the
 # step short) down to 2^-12 (where it is steeper, long), and 0
 TRANSPORT_STEPS = tuple(2.0 ** k for k in range(6, -13, -1)) + (0.0,)
-TRANSPORT_FLOWS = ("member", "mode")
+TRANSPORT_FLOWS = ("hybrid", "member", "mode")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -166,18 +166,20 @@ class MixtureConfig:
         found, and loses runs where the sensor cannot tell a state's sign (Lorenz-96 seen through
         ``x^2``, the UNGM).
       transport_iterations: damped Gauss-Newton steps of each member's Tweedie estimate per level.
-      transport_flow: how ``flow_transport`` moves a member from one level to the next.
-        "member": from its own Tweedie estimate, each Gauss-Newton step with the curvature of
-        the sensor at the member (a (d, d) Cholesky factorisation per member, level and step).
-        "mode": with the curvature at the posterior's mode shared by every member, then the exact
-        flow of the Gaussian linearised at the member. Both are the single map under a linear
-        sensor. With a sensor whose curvature changes across the ensemble (``x^3`` under a
-        broad prior) and more than a few dimensions, the shared curvature and the one step
-        fraction a member's line search picks for all its coordinates leave members spreads
-        away from the posterior, which "member" avoids (the paper's cubic problems); but with
-        50 members "member" lost runs that "mode" keeps (Cauchy noise, Lorenz-96 through
-        ``|x|``): "mode", by measurement on held-out runs (docs/defaults.md, the "member_flow"
-        candidate), until "member" keeps them too.
+      transport_flow: how ``flow_transport`` moves a member from one level to the next: its
+        Tweedie estimate by Gauss-Newton steps with the curvature of the sensor at the member
+        ("member", "hybrid"; a (d, d) Cholesky factorisation per member, level and step) or at
+        the posterior's mode, shared by every member ("mode"); then the member moves from that
+        estimate by the exact flow of a Gaussian posterior ("member"), or by the exact flow of
+        the Gaussian linearised at the estimate, about its centre found with the mode's
+        curvature ("mode", "hybrid"). All three are the single map under a linear sensor. With
+        a sensor whose curvature changes across the ensemble (``x^3`` under a broad prior) and
+        more than a few dimensions, the shared curvature and the one step fraction a member's
+        line search picks for all its coordinates leave members spreads away from the posterior
+        (the paper's 20-D columns: "mode" 1.7-1.9x the reference, the others 1.1x); with 50
+        members the move from the Tweedie estimate lost runs that the linearised flow keeps
+        (Cauchy noise, Lorenz-96 through ``|x|``). "hybrid" keeps both, by measurement on
+        held-out runs (docs/defaults.md, "Which transport flow").
       wild_ranges: a propagated member is dropped (``wild_members``: replaced by a copy of another,
         counted in the result's ``info["dropped"]``, and warned of after a concrete call) where its
         forecast is non-finite or lies more than this many central ranges (5-95%) of the ensemble
@@ -213,7 +215,7 @@ class MixtureConfig:
     ensemble_draws: str = "transport"
     transport_levels: int = 10
     transport_iterations: int = 1
-    transport_flow: str = "mode"
+    transport_flow: str = "hybrid"
     wild_ranges: float = 1e3
 
     def __post_init__(self):
@@ -514,12 +516,13 @@ def transported(model: StateSpaceModel, config: MixtureConfig, key, y, prior_ens
     def fill(idx):
         members = jnp.take(chosen, idx, axis=0, mode="clip")
         if config.transport_levels > 0:
-            own = config.transport_flow == "member"
+            own = config.transport_flow != "mode"
             return flow_transport(members, cov, u, chol, prior_prec,
                                   lambda x: guide * log_likelihood(model, y, x),
                                   transport_levels(config), config.transport_iterations, mean,
                                   model.observe if own else None,
-                                  (lambda x: guide * curvature(model, y, x)) if own else None)
+                                  (lambda x: guide * curvature(model, y, x)) if own else None,
+                                  centred=config.transport_flow != "member")
         return gaussian_transport(members, cov, u, chol, mean)
 
     return fill_rows(kind == 1, fill, draws, row_block(n))
@@ -617,7 +620,7 @@ def transport_levels(config: MixtureConfig):
 
 @_linalg.precise
 def flow_transport(prior_ens, cov, u, chol, prior_prec, loglik, levels, iterations: int,
-                   mean=None, observe=None, weight=None):
+                   mean=None, observe=None, weight=None, centred: bool = True):
     """``prior_ens (N, d)`` moved down the probability flow of the VE SDE onto the posterior
     ``N(m, B) p(y | x)`` of the ensemble component (prior mean m, the members' mean; prior
     precision ``prior_prec = B^{-1} (d, d)``; ``loglik: x (d,) -> log p(y | x)``, weighted by the
@@ -633,23 +636,24 @@ def flow_transport(prior_ens, cov, u, chol, prior_prec, loglik, levels, iteratio
       Gauss-Newton steps (the gradient at the member's own point, the best of the step fractions
       ``TRANSPORT_STEPS``), warm-started from the level above (at the top, from ``e_n``: the
       member's own propagated point, so that it looks for the posterior on its own side); then
-      the member moves to level ``s'``, in one of two ways (``MixtureConfig.transport_flow``):
+      the member moves to level ``s'`` (``MixtureConfig.transport_flow``):
 
-      - ``observe`` and ``weight`` given ("member"): each Gauss-Newton step with the member's
-        own curvature ``B_z + L^T J^T W J L + I / s^2`` (``J = dh/dx`` at the member's estimate,
-        ``W = weight(x)``: per-coordinate weights (m,) or a precision (m, m), as
-        ``kalman_tweedie`` takes them), then ``z_n <- t_n + K (z_n - t_n)`` with ``K = ((P +
-        s'^2)^{1/2} (P + s^2)^{1/2} - P) / s^2``: the exact flow of a Gaussian posterior written
-        from its Tweedie estimate (the probability flow's DDIM step ``s' / s`` where ``P`` is
-        negligible against ``s^2``, which with 10 levels narrows the ensemble by 15% even under a
-        linear sensor);
-      - without ("mode"): each step with the curvature at the mode, ``A_z + I / s^2``, shared by
-        every member; the centre ``mu_n`` of the Gaussian linearised at ``t_n``, one Newton step
-        ``t_n + P grad`` of the posterior, searched along the same way; then the exact flow of
-        that Gaussian, ``z_n <- mu_n + (P + s'^2)^{1/2} (P + s^2)^{-1/2} (z_n - mu_n)``.
+      - the Gauss-Newton steps: with ``observe`` and ``weight`` given ("hybrid", "member"), each
+        with the member's own curvature ``B_z + L^T J^T W J L + I / s^2`` (``J = dh/dx`` at the
+        member's estimate, ``W = weight(x)``: per-coordinate weights (m,) or a precision (m, m),
+        as ``kalman_tweedie`` takes them); without ("mode"), with the curvature at the mode,
+        ``A_z + I / s^2``, shared by every member;
+      - the move: ``centred`` ("hybrid", "mode"), the centre ``mu_n`` of the Gaussian
+        linearised at ``t_n``, one Newton step ``t_n + P grad`` of the posterior, searched along
+        the same way, then the exact flow of that Gaussian, ``z_n <- mu_n + (P + s'^2)^{1/2} (P +
+        s^2)^{-1/2} (z_n - mu_n)``; not ``centred`` ("member", with ``observe``),
+        ``z_n <- t_n + K (z_n - t_n)`` with ``K = ((P + s'^2)^{1/2} (P + s^2)^{1/2} - P) / s^2``:
+        the exact flow of a Gaussian posterior written from its Tweedie estimate (the
+        probability flow's DDIM step ``s' / s`` where ``P`` is negligible against ``s^2``, which
+        with 10 levels narrows the ensemble by 15% even under a linear sensor).
 
     With a linear sensor and Gaussian noise every ``mu_n`` is ``z*``, every ``t_n`` the exact
-    Tweedie estimate, and both ways telescope to ``z* + P^{1/2} e_n``: ``gaussian_transport``,
+    Tweedie estimate, and all three ways telescope to ``z* + P^{1/2} e_n``: ``gaussian_transport``,
     whatever the levels (tested).
     Otherwise each member follows the posterior's gradient where it is: a member that starts on
     the side of a second mode (a state the sensor sees only up to its sign) ends in that mode,
@@ -714,13 +718,16 @@ def flow_transport(prior_ens, cov, u, chol, prior_prec, loglik, levels, iteratio
         return a @ inverse_sqrt(a)
 
     sig = jnp.asarray(levels, dtype)
-    if own:  # the flow's step from the member's Tweedie estimate; no shared solves
+    from_tweedie = own and not centred
+    if from_tweedie:  # the flow's step from the member's Tweedie estimate
         maps = jax.vmap(lambda s, s_next: (sqrtm(p + s_next ** 2 * eye) @ sqrtm(p + s ** 2 * eye)
                                            - p) / s ** 2)(sig[:-1], sig[1:])  # (L, d, d)
-        solves = jnp.zeros((sig.shape[0] - 1, 0), dtype)
     else:
         maps = jax.vmap(lambda s, s_next: sqrtm(p + s_next ** 2 * eye)
                         @ inverse_sqrt(p + s ** 2 * eye))(sig[:-1], sig[1:])  # (L, d, d)
+    if own:  # each member's own factorisation; no shared solves
+        solves = jnp.zeros((sig.shape[0] - 1, 0), dtype)
+    else:
         solves = precision(a_z[None] + eye[None] / sig[:-1, None, None] ** 2)  # (L, d, d)
 
     def level(carry, xs):
@@ -731,7 +738,7 @@ def flow_transport(prior_ens, cov, u, chol, prior_prec, loglik, levels, iteratio
                 t = particle_map(lambda tz: tweedie(*tz, s, solve), (t, z))
             else:
                 t = jax.vmap(tweedie, in_axes=(0, 0, None, None))(t, z, s, solve)
-        if own:
+        if from_tweedie:
             return (t + (z - t) @ flow, t), None
         mu = jax.vmap(centre)(t)
         return (mu + (z - mu) @ flow, t), None

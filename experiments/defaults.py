@@ -58,13 +58,17 @@ CANDIDATES = {
     # the default with the ensemble component's members drawn afresh by the reverse-diffusion
     # sampler instead of transported (``MixtureConfig.ensemble_draws``)
     "sampler": _mixture(ensemble_draws="sampler"),
-    # the default with the transport's steps taken with each member's own curvature instead of
-    # the curvature at the posterior's mode (``MixtureConfig.transport_flow``)
+    # the default with the transport's Gauss-Newton steps taken with the curvature at the
+    # posterior's mode, shared by every member, instead of each member's own
+    # (``MixtureConfig.transport_flow``)
+    "mode_flow": _mixture(transport_flow="mode"),
+    # the default with each member moved from its Tweedie estimate by the exact flow of a
+    # Gaussian posterior, instead of about the centre of the Gaussian linearised there
     "member_flow": _mixture(transport_flow="member"),
 }
 
 # (problem, runs): the table's columns where the candidates differ most, few runs each; the 20-D
-# ones are where the transport's flow ("mode" or "member") matters most
+# ones are where the transport's flow matters most
 TABLE = (("triple_well", 4), ("double_well", 2), ("cauchy", 2), ("cubic10_corr", 2),
          ("cubic20_indep", 2), ("cubic20_corr", 2))
 SMALL = [m for m in zoo.MODELS if m not in MODERATE]
@@ -127,8 +131,11 @@ def main(argv=None):
     harness.add_names(p, "--groups", GROUPS, what="group")
     harness.add_sizes(p, particles=1000, seed=7)
     harness.add_outputs(p, "results/defaults", "docs/defaults.md")
+    p.add_argument("--tag", default=None,
+                   help="the page's block and the results file's suffix (default N<particles>)")
     args = p.parse_args(argv)
-    cli.check_outputs(p, args, f"N{args.particles}")
+    tag = args.tag or f"N{args.particles}"
+    cli.check_outputs(p, args, tag)
     cache = cells.Cache(args.cache)
     cases_ = cases(args.groups, args.particles, args.seed)
     entries = [entry(c) for c in args.candidates] + CLASSICAL
@@ -144,7 +151,7 @@ def main(argv=None):
     record = harness.results_record("defaults", harness.command("defaults", argv), rows)
     with interrupt.WRITING:
         harness.publish(args, record, page(record, args.candidates),
-                        f"results_N{args.particles}.json", f"N{args.particles}")
+                        f"results_{tag}.json", tag)
 
 
 if __name__ == "__main__":

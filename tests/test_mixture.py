@@ -572,9 +572,10 @@ def test_gaussian_transport_is_the_etkf_for_a_linear_sensor(x64):
 def test_flow_transport_is_the_single_map_for_a_linear_sensor(x64):
     """With a linear sensor and Gaussian noise every level's centre is the mode and every
     member's Tweedie estimate exact, and the flow's maps telescope to the single linear map
-    (``gaussian_transport``), with an inflated prior precision too, whether each member's
-    curvature is its own or the mode's; a broken level map, centre or Tweedie step would leave
-    a residual of the ensemble's size."""
+    (``gaussian_transport``), with an inflated prior precision too, for every
+    ``transport_flow``: each member's curvature its own or the mode's, each move from the
+    member's Tweedie estimate or about its centre; a broken level map, centre or Tweedie step
+    would leave a residual of the ensemble's size."""
     lg = linear_gaussian(4, 3, r_std=0.4)
     model = to_model(lg)
     rng = np.random.default_rng(3)
@@ -590,12 +591,12 @@ def test_flow_transport_is_the_single_map_for_a_linear_sensor(x64):
     single = mixture.gaussian_transport(ens, cov, u, chol)
     weight = lambda x: csf_jax.ssm.curvature(model, y, x)
     for config in (MixtureConfig(), MixtureConfig(transport_levels=3, transport_iterations=2)):
-        for own in (False, True):  # the members' own curvature ("member"), the mode's
+        for own, centred in ((False, True), (True, True), (True, False)):  # mode, hybrid, member
             flow = mixture.flow_transport(ens, cov, u, chol, prior_prec, loglik,
                                           mixture.transport_levels(config),
                                           config.transport_iterations, None,
                                           model.observe if own else None,
-                                          weight if own else None)
+                                          weight if own else None, centred)
             np.testing.assert_allclose(np.asarray(flow), np.asarray(single), atol=1e-9)
 
 
@@ -662,9 +663,10 @@ def test_flow_transport_through_a_cubic_sensor_under_a_broad_prior():
     """d = 10 independent coordinates, prior ``N(0.4, 1)``, sensor ``x^3`` with noise 0.1: the
     posterior is narrow where ``|y|`` is large (std 0.01) and wide near 0 (0.3), so the sensor's
     curvature varies by orders of magnitude across members and coordinates. With each member's
-    own curvature ("member") the moved members' mean is the exact posterior mean to about 0.05 per
-    coordinate and the bulk of their spread (the central 80%) is the exact one's; with the
-    curvature at the mode ("mode") they stay spreads away (0.48 on average)."""
+    own curvature ("hybrid", the default, and "member") the moved members' mean is the exact
+    posterior mean to about 0.05 per coordinate and the bulk of their spread (the central 80%) is
+    the exact one's; with the curvature at the mode ("mode") they stay spreads away (0.48 on
+    average)."""
     d, n, m, s, r = 10, 400, 0.4, 1.0, 0.1
     k_truth, k_noise, k_ens = jax.random.split(jax.random.key(1), 3)
     y = (m + s * jax.random.normal(k_truth, (d,))) ** 3 + r * jax.random.normal(k_noise, (d,))
@@ -677,18 +679,18 @@ def test_flow_transport_through_a_cubic_sensor_under_a_broad_prior():
                                      mean[None], 1.0, 12, damped=True)
     exact_mean, exact_std = _exact_cubic_posterior(y, m, s, r)
 
-    def moved(own):
+    def moved(own, centred=True):
         return np.asarray(jax.jit(lambda: mixture.flow_transport(
             ens, cov, u[0], chol[0], prec, loglik, mixture.transport_levels(MixtureConfig()), 1,
-            mean, (lambda x: x ** 3) if own else None, weight if own else None))())
+            mean, (lambda x: x ** 3) if own else None, weight if own else None, centred))())
 
-    member, mode = moved(True), moved(False)
-    assert np.all(np.isfinite(member))
-    assert np.mean(np.abs(member.mean(0) - exact_mean)) < 0.1
-    q10, q90 = np.quantile(member, [0.1, 0.9], axis=0)
-    width = (q90 - q10) / (2 * 1.2816 * exact_std)     # the central 80% against a Gaussian's
-    assert 0.6 < np.median(width) < 1.5, width
-    assert np.mean(np.abs(mode.mean(0) - exact_mean)) > 0.3
+    for flow in (moved(True), moved(True, centred=False)):  # hybrid, member
+        assert np.all(np.isfinite(flow))
+        assert np.mean(np.abs(flow.mean(0) - exact_mean)) < 0.1
+        q10, q90 = np.quantile(flow, [0.1, 0.9], axis=0)
+        width = (q90 - q10) / (2 * 1.2816 * exact_std)     # the central 80% against a Gaussian's
+        assert 0.6 < np.median(width) < 1.5, width
+    assert np.mean(np.abs(moved(False).mean(0) - exact_mean)) > 0.3
 
 
 def test_the_transport_moves_a_random_subset_of_the_members_and_skips_the_sampler(x64):
