@@ -188,6 +188,8 @@ PATH_CASES = [  # job, argv ({file}: an existing file, {dir}: a folder, {page}: 
     ("small_ensembles", ["--out", "{file}"], "--out", "is a file"),
     ("small_ensembles", ["--cache", "{file}"], "--cache", "is a file"),
     ("defaults", ["--page", "{page}"], "--page", "lacks the <!-- results:N1000:start -->"),
+    ("defaults", ["--tag", "flows_N50", "--page", "{page}"], "--page",
+     "lacks the <!-- results:flows_N50:start -->"),
     ("lorenz96", ["--out", "{file}"], "--out", "is a file"),
     ("lorenz96", ["--study", "adaptive", "--page", "{page}"], "--page", "results:adaptive:start"),
     ("lorenz96_robustness", ["--cache", "{file}"], "--cache", "is a file"),
