@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from csf_jax import networks
+from csf_jax import _random, networks
 from csf_jax.sde import marginal_std
 
 
@@ -48,7 +48,7 @@ def dsm_fit(key, ensemble, score_vars, opt_state, optimizer: optax.GradientTrans
         k_i, k_t, k_z = jax.random.split(k, 3)
         x0 = ensemble[jax.random.randint(k_i, (batch,), 0, ensemble.shape[0])]
         t = jax.random.uniform(k_t, (batch,), ensemble.dtype, minval=t_min, maxval=1.0)
-        z = jax.random.normal(k_z, x0.shape, x0.dtype)
+        z = _random.normal(k_z, x0.shape, x0.dtype)
         loss, g = value_and_grad(sv, x0, t, z)
         updates, o = optimizer.update(g, o, sv)
         return (optax.apply_updates(sv, updates), o), loss

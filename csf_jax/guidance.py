@@ -29,7 +29,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from csf_jax import _checks, _linalg
+from csf_jax import _checks, _linalg, _random
 
 MODES = ("kalman", "raw", "clipped", "normalized", "none")
 DPS_MODES = ("raw", "clipped", "normalized", "none")
@@ -232,7 +232,7 @@ def student_t(key, df: int, shape, dtype):
     """Student-t draws with integer ``df`` as ``g_0 / sqrt(mean(g_1^2 .. g_df^2))`` of standard
     normals: exact, and without ``jax.random.t``'s rejection-sampled gamma (a while loop per
     element, slow inside the sampler's scans); a port draws the same from the same normals."""
-    g = jax.random.normal(key, (df + 1, *shape), dtype)
+    g = _random.normal(key, (df + 1, *shape), dtype)
     return g[0] / jnp.sqrt(jnp.mean(g[1:] * g[1:], 0))
 
 
@@ -252,7 +252,7 @@ def importance_weights(key, mean, precision, u, chol, loglik_fn, guide, proposal
     n, d = u.shape
     k_draw, _ = jax.random.split(key)
     if df is None:
-        z = jax.random.normal(k_draw, (proposals, n, d), u.dtype)
+        z = _random.normal(k_draw, (proposals, n, d), u.dtype)
         log_q = -0.5 * jnp.sum(z * z, -1)
     else:
         z = student_t(k_draw, df, (proposals, n, d), u.dtype)

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from csf_jax import _linalg
+from csf_jax import _linalg, _random
 
 
 @functools.lru_cache(maxsize=32)
@@ -107,7 +107,7 @@ def precision_diagonal(stats: LocalStats):
 
 def precision_noise(stats: LocalStats, key, shape, dtype):
     """A draw of ``N(0, Lambda)`` of shape ``shape (..., d)``: ``(I - B)^T D^{-1/2} eps``."""
-    return apply_lt(stats, jnp.sqrt(stats.dinv) * jax.random.normal(key, shape, dtype))
+    return apply_lt(stats, jnp.sqrt(stats.dinv) * _random.normal(key, shape, dtype))
 
 
 def dense_precision(stats: LocalStats):

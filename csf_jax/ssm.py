@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import gammaln
 
-from csf_jax import _checks, _linalg
+from csf_jax import _checks, _linalg, _random
 from csf_jax.parametric import as_float
 
 Array = jax.Array
@@ -102,7 +102,7 @@ class ObservationNoise(NamedTuple):
 
     def gaussian_draws(self, key: Array, shape: tuple, dtype=jnp.float32) -> Array:
         """Draws ``shape = (..., m)`` of ``N(0, cov)``: the EnKF's observation perturbations."""
-        z = jax.random.normal(key, shape, dtype)
+        z = _random.normal(key, shape, dtype)
         if self.covariance is None:
             return self.gaussian_std * z
         return z @ _linalg.cholesky(self.cov(shape[-1], dtype)).T
@@ -152,7 +152,7 @@ def gaussian_noise(std: float) -> ObservationNoise:
     inv_var = 1.0 / std**2
 
     def sample(key, shape):
-        return std * jax.random.normal(key, shape)
+        return std * _random.normal(key, shape)
 
     log = jnp.log if isinstance(std, jax.core.Tracer) else math.log
     const = -0.5 * log(2.0 * math.pi * std ** 2)
@@ -195,7 +195,7 @@ def gaussian_noise_cov(cov) -> ObservationNoise:
         return -0.5 * r @ _linalg.cho_solve(chol, r)
 
     def sample(key, shape):
-        z = jax.random.normal(key, shape)
+        z = _random.normal(key, shape)
         return z @ jnp.asarray(chol_np, z.dtype).T
 
     def log_norm(mask):
@@ -291,7 +291,7 @@ def volatility_likelihood() -> Likelihood:
         return -0.5 * (eta + y * y * jnp.exp(-eta))
 
     def sample(key, eta):
-        return jnp.exp(0.5 * eta) * jax.random.normal(key, eta.shape, eta.dtype)
+        return jnp.exp(0.5 * eta) * _random.normal(key, eta.shape, eta.dtype)
 
     const = -0.5 * math.log(2.0 * math.pi)
     return Likelihood("volatility", log_prob, sample, fisher=lambda eta: jnp.full_like(eta, 0.5),
@@ -323,7 +323,7 @@ def gaussian_process_noise(cov) -> ProcessNoise:
     prec_np = np.linalg.inv(cov_np)
 
     def sample(key, shape):
-        z = jax.random.normal(key, shape)
+        z = _random.normal(key, shape)
         return z @ jnp.asarray(chol_np, z.dtype).T
 
     def log_prob(v):
@@ -461,7 +461,7 @@ def tail_df(model: StateSpaceModel) -> int | None:
 def process_draws(model: StateSpaceModel, key: Array, shape: tuple, dtype=jnp.float32) -> Array:
     """Draws of the process noise v, ``shape = (..., d)``, in ``dtype``."""
     if model.process_noise is None:
-        return model.process_std * jax.random.normal(key, shape, dtype)
+        return model.process_std * _random.normal(key, shape, dtype)
     return model.process_noise.sample(key, shape).astype(dtype)
 
 

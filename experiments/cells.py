@@ -9,8 +9,8 @@ unreadable file already is. A cell without a checksum file (written before the c
 as the caches under ``results/cache`` were) is accepted after the shape and ``finite`` checks and
 left as it is; rewriting such a cell is not detected, so delete a cache you do not trust.
 
-The class lives here, not in ``experiments/harness.py``, because the harness's source is part of
-every cell's key (``harness.code_digest``): changing it would recompute every cache.
+The class lives here, not in ``experiments/harness.py``, which holds what makes a cell's key
+(``harness.program_digest``).
 """
 
 from __future__ import annotations

@@ -14,11 +14,13 @@
   use) and its settings, possibly a function of the case (a pretrained prior, say).
 * **Cache.** One ``.npz`` per (case, run, entry): the filtered means ``(K, d)``, ``finite`` and the
   run's seconds. Its key covers everything that changes the numbers: the case (the problem's full
-  config), the run, the built ``Method`` (kernel, full config, a digest of its params) and the
-  source of every ``csf_jax`` module the filter and the problem import (``code_digest``), with the
-  harness's own. A changed default or filter recomputes its cells and only those; a file written
-  by other code is never read (its key differs). Writes are atomic, so a kill loses at most the
-  batch in flight; an unreadable file is named, moved aside and recomputed.
+  config), the run, a digest of the method's params, and the program the run executes
+  (``program_digest``: the compiled computation's StableHLO, the model's and the filter's
+  settings in it, and the jax version). A changed default, filter or model recomputes its cells
+  and only those; an edit of the source that computes the same program (documentation, a
+  refactoring, an option left off) recomputes none; a file written by other code is never read
+  (its key differs). Writes are atomic, so a kill loses at most the batch in flight; an
+  unreadable file is named, moved aside and recomputed.
 * **Metrics** come from ``csf_jax.metrics``; **results** files share one schema (``SCHEMA``: the
   command, machine, versions and date, then one row per case and entry); **progress** is one line
   per batch on stderr.
@@ -259,51 +261,6 @@ def params_digest(params) -> str:
     return digest.hexdigest()[:16]
 
 
-def _imports(path: pathlib.Path) -> set:
-    """The ``csf_jax`` modules a source file imports (as files)."""
-    import ast
-
-    found = set()
-    for node in ast.walk(ast.parse(source(path))):
-        names = []
-        if isinstance(node, ast.Import):
-            names = [a.name for a in node.names]
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
-        for name in names:
-            if name.split(".")[0] == "csf_jax" and name != "csf_jax":
-                file = _module_file(name)
-                if file is not None:
-                    found.add(file)
-    return found
-
-
-def _module_file(name: str) -> pathlib.Path | None:
-    parts = name.split(".")[1:]
-    base = LIBRARY.joinpath(*parts)
-    for candidate in (base.with_suffix(".py"), base / "__init__.py"):
-        if candidate.is_file():
-            return candidate
-    return None
-
-
-@functools.cache
-def code_digest(*modules: str) -> str:
-    """A digest of the source of ``modules`` (dotted names) and of every ``csf_jax`` module they
-    import, transitively, and of this harness: the code that computes a cell."""
-    todo = [f for f in map(_module_file, modules) if f is not None]
-    seen: set = set()
-    while todo:
-        file = todo.pop()
-        if file not in seen:
-            seen.add(file)
-            todo.extend(_imports(file) - seen)
-    digest = hashlib.sha256(source(pathlib.Path(__file__)))
-    for file in sorted(seen):
-        digest.update(str(file.relative_to(LIBRARY)).encode() + source(file))
-    return digest.hexdigest()[:16]
-
-
 def _package_file(name: str) -> pathlib.Path | None:
     """The file of a dotted ``csf_jax`` or ``experiments`` module (the packages themselves
     included), or None for any other name."""
@@ -392,16 +349,30 @@ def source(file: pathlib.Path) -> bytes:
     return file.read_bytes()
 
 
-def cell_key(case: Case, run: int, method: csf_jax.Method, model) -> str:
-    """The cache key of one run of ``method`` on ``case``: module docstring."""
-    kernel = method.kernel
-    modules = {f.__module__ for f in (kernel.init, kernel.step, kernel.runner, kernel.bind)
-               if f is not None}
-    modules |= {model.drift.__module__, "csf_jax.ssm", "csf_jax.metrics", "csf_jax.problems"}
-    what = {"case": case.identity(), "run": run, "kernel": kernel.name,
-            "config": stable(method.config), "params": params_digest(method.params),
-            "code": code_digest(*sorted(m for m in modules if m.startswith("csf_jax")))}
+def cell_key(case: Case, run: int, method: csf_jax.Method, model,
+             program: str | None = None) -> str:
+    """The cache key of one run of ``method`` on ``case``: module docstring. ``program``: its
+    ``program_digest``, when already computed (one per case and method)."""
+    program = program_digest(case, method, model) if program is None else program
+    what = {"case": case.identity(), "run": run, "params": params_digest(method.params),
+            "program": program}
     return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:20]
+
+
+def program_digest(case: Case, method: csf_jax.Method, model) -> str:
+    """A digest of the computation one run of ``method`` on ``case`` executes: the StableHLO
+    text of ``Compiled``'s program at batch width 1 (without source locations, its constants in
+    full: the model's numbers, the filter's static settings), with the jax and jaxlib versions
+    that compile it. Source edits that leave the program as it was (documentation, a
+    refactoring, a new option left off) keep the cells; any change of what is computed, in
+    ``csf_jax`` or in the harness's runner, changes it. The method's params are arguments, not
+    part of the program: ``cell_key`` digests them apart."""
+    data = jax.eval_shape(lambda k: _simulate(case, k), run_keys(case.seed, np.arange(1)))
+    _, obs, _, ensembles, keys = data
+    text = Compiled(model).fn.lower(method, obs, ensembles, keys).as_text(debug_info=False)
+    digest = hashlib.sha256(text.encode())
+    digest.update(f"jax {jax.__version__} jaxlib {jax.lib.__version__}".encode())
+    return digest.hexdigest()[:16]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -514,7 +485,9 @@ def run(cases, entries, cache: Cache, progress: bool = True) -> dict:
         for entry in entries:
             method = entry.build(case, model)
             runs = min(case.runs, entry.runs or case.runs)
-            keys = [cell_key(case, case.first_run + r, method, model) for r in range(runs)]
+            program = program_digest(case, method, model)
+            keys = [cell_key(case, case.first_run + r, method, model, program)
+                    for r in range(runs)]
             cells = [cache.load(case, k) for k in keys]
             missing = [r for r, c in enumerate(cells) if c is None]
             if len(missing) < runs:

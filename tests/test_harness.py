@@ -3,6 +3,7 @@ recomputed when something changes; resumable; one data and seeding convention; o
 
 import dataclasses
 import json
+import os
 
 import jax
 import numpy as np
@@ -12,6 +13,7 @@ import csf_jax
 from csf_jax import CSFConfig, SamplerConfig
 from csf_jax.filters import csf as csf_module
 from csf_jax.filters import enkf as enkf_module
+from csf_jax.filters import pf as pf_module
 from experiments import harness
 
 CASE = harness.Case("double_well", settings=(("num_steps", 5),), runs=2, particles=20)
@@ -49,18 +51,59 @@ def test_a_changed_default_recomputes_its_cells_and_only_those(tmp_path, monkeyp
     assert len(cache.computed) == 2 * CASE.runs
 
 
-def test_changed_code_recomputes_the_filters_that_import_it(tmp_path, monkeypatch):
-    harness.code_digest.cache_clear()  # the source as it is on disk now
+@pytest.fixture
+def fresh_traces():
+    """jax's caches cleared before and after the test (requested before ``monkeypatch``, so
+    cleared after its patches are undone): a patched function is traced as a new process
+    traces it, and no patch outlives the test in a cached trace."""
+    jax.clear_caches()
+    yield
+    jax.clear_caches()
+
+
+def test_changed_code_recomputes_the_filters_whose_program_it_changes(tmp_path, fresh_traces,
+                                                                      monkeypatch):
     harness.run([CASE], CHEAP, harness.Cache(tmp_path), progress=False)
-    read = harness.source
-    monkeypatch.setattr(harness, "source", lambda f: read(f) + (b"#" if f.name == "pf.py" else b""))
-    harness.code_digest.cache_clear()
-    try:
-        cache = harness.Cache(tmp_path)
-        harness.run([CASE], CHEAP, cache, progress=False)
-        assert _computed(cache) == ["PF"]
-    finally:
-        harness.code_digest.cache_clear()
+    original = pf_module.sir_step
+    # the PF's step computes something else (its ensemble scaled by 1.0: another program)
+    monkeypatch.setattr(pf_module, "sir_step",
+                        lambda problem, key, ens, y: original(problem, key, ens * 1.0, y))
+    jax.clear_caches()  # as a new process would trace it
+    cache = harness.Cache(tmp_path)
+    harness.run([CASE], CHEAP, cache, progress=False)
+    assert _computed(cache) == ["PF"]
+
+
+def test_an_edit_that_computes_the_same_program_recomputes_nothing(tmp_path, fresh_traces,
+                                                                  monkeypatch):
+    first = harness.run([CASE], CHEAP + [CSF_G], harness.Cache(tmp_path), progress=False)
+    original = pf_module.sir_step
+    # a refactoring: the same computation through another Python function
+    monkeypatch.setattr(pf_module, "sir_step", lambda *args: original(*args))
+    jax.clear_caches()
+    cache = harness.Cache(tmp_path)
+    again = harness.run([CASE], CHEAP + [CSF_G], cache, progress=False)
+    assert cache.computed == []
+    for entry in CHEAP + [CSF_G]:
+        np.testing.assert_array_equal(first[(CASE, entry.label)].means,
+                                      again[(CASE, entry.label)].means)
+
+
+def test_the_program_digest_is_the_same_in_another_process():
+    import subprocess
+    import sys
+
+    code = ("from experiments import harness; c = harness.Case('double_well', runs=1, "
+            "particles=20); e = harness.Entry('CSF', 'csf'); m = c.model; "
+            "print(harness.program_digest(c, e.build(c, m), m))")
+    runs = [subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                           check=True, cwd=harness.ROOT, env={**os.environ, "PYTHONHASHSEED": seed})
+            for seed in ("1", "2")]
+    digests = [r.stdout.strip().splitlines()[-1] for r in runs]
+    case = harness.Case("double_well", runs=1, particles=20)
+    model = case.model
+    assert digests[0] == digests[1] == harness.program_digest(
+        case, harness.Entry("CSF", "csf").build(case, model), model)
 
 
 def test_an_unreadable_cell_is_named_moved_aside_and_recomputed(tmp_path, capsys):

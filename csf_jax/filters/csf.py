@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from csf_jax import _checks, mixture, networks, trained
+from csf_jax import _checks, _random, mixture, networks, trained
 from csf_jax.filters.driver import Kernel, Method, StepOutput, run
 from csf_jax.filters.result import FilterResult
 from csf_jax.guidance import (
@@ -245,7 +245,7 @@ def sampler_start(config: CSFConfig, prior_ens, key, y=None, model: StateSpaceMo
     ``y``/``model``/``guide``: for the adaptive inflation (``step_inflation``).
     """
     sigma_1 = marginal_std(1.0, config.sampler.sigma_max)
-    noise = jax.random.normal(key, prior_ens.shape, prior_ens.dtype)
+    noise = _random.normal(key, prior_ens.shape, prior_ens.dtype)
     tau = step_inflation(config, prior_ens, y, model, guide)
     if not uses_kalman(config):
         return sigma_1 * noise, SamplerStart(None, tau)
@@ -284,7 +284,7 @@ def ancestral_sample(params, prior: PriorScore, context, model: StateSpaceModel,
         x0 = resample_posterior(k_post, x0_hat, prior_precision, u, chol, loglik_fn, guide,
                                 config.sampler.guidance.proposals, config.sampler.guidance.proposal_df)
         rho, var = bridge(sigma, sigma_next)
-        x = rho * x + (1.0 - rho) * x0 + jnp.sqrt(var) * jax.random.normal(k_bridge, x.shape, x.dtype)
+        x = rho * x + (1.0 - rho) * x0 + jnp.sqrt(var) * _random.normal(k_bridge, x.shape, x.dtype)
         return (x, u), None
 
     inputs = (levels[:-1], levels[1:], jnp.arange(config.sampler.reverse_steps))
@@ -318,7 +318,7 @@ def posterior_sample(params, prior: PriorScore, context, loglik_fn, x_init, key,
             s, grad, loglik = dps_gradient(score_fn, loglik_fn, x, var)
             disp = guide * guidance_displacement(config.sampler.guidance, grad, loglik, g2 * dt,
                                                  jnp.sqrt(g2 * dt))
-        noise = jax.random.normal(jax.random.fold_in(key, l_idx), x.shape, x.dtype)
+        noise = _random.normal(jax.random.fold_in(key, l_idx), x.shape, x.dtype)
         noise_on = jnp.where(last & config.sampler.denoise_last, 0.0, 1.0)
         x = x + g2 * dt * s + disp + noise_on * jnp.sqrt(g2 * dt) * noise
         return x, None

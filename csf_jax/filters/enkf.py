@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
 
-from csf_jax import _linalg
+from csf_jax import _linalg, _random
 from csf_jax._checks import is_concrete, renamed_keywords
 from csf_jax.evidence import gaussian_log_evidence
 from csf_jax.filters.driver import Kernel, Method, StepOutput, run
@@ -119,7 +119,7 @@ def _gaussian_draws(model: StateSpaceModel, R, key, shape, dtype):
     it is additive, else from the stand-in's diagonal ``R``."""
     if is_additive(model):
         return model.obs_noise.gaussian_draws(key, shape, dtype)
-    return jax.random.normal(key, shape, dtype) * jnp.sqrt(jnp.diagonal(R))
+    return _random.normal(key, shape, dtype) * jnp.sqrt(jnp.diagonal(R))
 
 
 def _init(model, config, inflation, ensemble, key):

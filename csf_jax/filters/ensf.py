@@ -56,7 +56,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from csf_jax import _checks
+from csf_jax import _checks, _random
 from csf_jax.filters.driver import Kernel, Method, StepOutput, run
 from csf_jax.filters.result import FilterResult
 from csf_jax.ssm import StateSpaceModel, log_likelihood, propagate
@@ -185,7 +185,7 @@ def likelihood_gradient(model: StateSpaceModel, y, z):
 def standard_start(key, shape, dtype):
     """``N(0, I)`` draws ``shape = (N, d)`` standardised per coordinate over the N rows (mean 0,
     std 1 with the N-1 denominator): EnSF's terminal sample."""
-    z = jax.random.normal(key, shape, dtype)
+    z = _random.normal(key, shape, dtype)
     return (z - z.mean(0)) / z.std(0, ddof=1)
 
 
@@ -207,7 +207,7 @@ def ensf_analysis(key, forecast, y, model: StateSpaceModel, params: ENSFParams,
         score = prior_score(z, members, batch, c.alpha, c.alpha ** 2 * kappa + c.beta2)
         score = score + damping(t) * likelihood_gradient(model, y, z).astype(dtype)
         score = jnp.clip(score, -smax, smax)
-        noise = jax.random.normal(k, z.shape, dtype)
+        noise = _random.normal(k, z.shape, dtype)
         z = z - dt * (c.f * z - c.g2 * score) + jnp.sqrt(dt * c.g2) * noise
         return z, None
 

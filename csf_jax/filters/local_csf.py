@@ -44,7 +44,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from csf_jax import _checks, _linalg
+from csf_jax import _checks, _linalg, _random
 from csf_jax.filters.driver import Kernel, Method, StepOutput, run
 from csf_jax.filters.letkf import Localization, check_localization, require_localization
 from csf_jax.filters.result import FilterResult
@@ -233,7 +233,7 @@ def ancestral_sample(model: StateSpaceModel, y, prior_ens, stats: LocalStats, ke
     dtype = prior_ens.dtype
     levels = _levels(config, dtype)
     k_init, k_steps = jax.random.split(key)
-    x = prior_ens + levels[0] * jax.random.normal(k_init, prior_ens.shape, dtype)
+    x = prior_ens + levels[0] * _random.normal(k_init, prior_ens.shape, dtype)
     ops = _operators(model, y, stats, sites, config.block)
 
     def step(carry, inputs):
@@ -244,11 +244,11 @@ def ancestral_sample(model: StateSpaceModel, y, prior_ens, stats: LocalStats, ke
         rhs = ops.lam_m + x * inv_s2 + ops.grad(u) + kappa * u
         k1, k2, k3, k_bridge = jax.random.split(jax.random.fold_in(k_steps, l_idx), 4)
         xi = (precision_noise(stats, k1, x.shape, dtype)
-              + jax.random.normal(k2, x.shape, dtype) / sigma
-              + jnp.sqrt(kappa) * jax.random.normal(k3, x.shape, dtype))
+              + _random.normal(k2, x.shape, dtype) / sigma
+              + jnp.sqrt(kappa) * _random.normal(k3, x.shape, dtype))
         x0 = _solve(stats, ops, rhs + xi, u, inv_s2, kappa, config)
         rho, var = bridge(sigma, sigma_next)
-        x = rho * x + (1.0 - rho) * x0 + jnp.sqrt(var) * jax.random.normal(k_bridge, x.shape, dtype)
+        x = rho * x + (1.0 - rho) * x0 + jnp.sqrt(var) * _random.normal(k_bridge, x.shape, dtype)
         return (x, x0), None
 
     inputs = (levels[:-1], levels[1:], jnp.arange(config.reverse_steps))

@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import logsumexp
 
-from csf_jax import _checks
+from csf_jax import _checks, _random
 from csf_jax.filters.driver import Kernel, Method, StepOutput, run, run_kernel
 from csf_jax.filters.result import FilterResult
 from csf_jax.ssm import (
@@ -120,7 +120,7 @@ def _step(model: StateSpaceModel, config: ReferenceConfig, shock_prob, parts, y,
     offset = jax.random.randint(k_roll, (1, model.dim), 0, m)
     parts = jnp.take_along_axis(parts, (jnp.arange(m)[:, None] + offset) % m, axis=0)
     prior = (jax.vmap(model.drift)(parts)
-             + model.process_std * jax.random.normal(k_prop, parts.shape, parts.dtype))
+             + model.process_std * _random.normal(k_prop, parts.shape, parts.dtype))
     ll0 = _coordinate_loglik(model, y, prior)
     if not config.model_shocks:
         post = _resample_columns(k_res, prior, ll0, m)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from csf_jax import networks
+from csf_jax import _random, networks
 from csf_jax.prior import ResidualContext, ensemble_moments, residual_score
 from csf_jax.sde import marginal_std
 
@@ -44,4 +44,4 @@ def draw_noise(key, shape_bt: tuple, dim: int, t_min: float):
     """``t ~ U(t_min, 1)`` of shape ``(B, T)`` and ``z ~ N(0, I)`` of shape ``(B, T, d)``."""
     k_t, k_z = jax.random.split(key)
     t = jax.random.uniform(k_t, shape_bt, minval=t_min, maxval=1.0)
-    return t, jax.random.normal(k_z, shape_bt + (dim,))
+    return t, _random.normal(k_z, shape_bt + (dim,))
