@@ -1,16 +1,22 @@
 """Remake every committed table, figure and example output, resuming where a run stopped.
 
-    python -m experiments.regenerate [--only NAME,...] [--gpu] [--force]
+    python -m experiments.regenerate [--only NAME,...] [--gpu] [--force] [--jobs N]
     python -m experiments.regenerate --list | --dry-run | --stale
 
 ``JOBS`` declares each maintained job: its name, its command line, the generated blocks of the
 pages it rewrites (``(page, tag)``: between ``<!-- results:<tag>:start -->`` and ``:end``, or
 ``results:start`` / ``:end`` for tag None), the results files and figures it writes, and the
-modules whose code makes them. A run runs, in order and one at a time, each selected job that is
-not up to date, as a subprocess (``experiments.interrupt.run``: one Ctrl-C stops it and its
-child, exit status 130), and prints ``[3/17] zoo_N50: started`` and ``... done in 4 min 12 s``,
-then a table of what it remade and how long each job took.
+modules whose code makes them. A run runs each selected job that is not up to date, in order,
+as a subprocess (``experiments.interrupt``: one Ctrl-C stops it and its child, exit status 130),
+and prints ``[3/17] zoo_N50: started`` and ``... done in 4 min 12 s``, then a table of what it
+remade and how long each job took.
 
+* **Side by side.** With ``--jobs 2`` (the default on a machine with two cores or more) two
+  jobs run at once where both may: neither is ``timed`` (its outputs quote seconds, which a
+  neighbour would inflate: the table, the zoo, the costs, the profile, the benchmarks, the
+  tutorial, the fits, Lorenz-96's main table and scaling: they run alone), and they write no
+  file in common (a page is read, changed and written whole). A job that may start runs before
+  an earlier one that must wait; each line a job prints is prefixed with its name.
 * **Code of a block.** Each job writes, as the first line inside each block it makes, the
   comment ``<!-- made by: COMMAND; code DIGEST -->`` (``harness.made_by``): DIGEST is
   ``harness.job_digest`` of the job's module, the source of it and of every ``csf_jax`` and
@@ -37,7 +43,9 @@ import json
 import os
 import re
 import shlex
+import subprocess
 import sys
+import threading
 import time
 
 from experiments import harness, interrupt
@@ -60,6 +68,8 @@ class Job:
     modules: the modules whose code (with what they import: ``harness.job_digest``) makes them.
     inputs: other files whose contents make them (the tutorial's page), in its digest too.
     gpu: its blocks are a GPU's: run only with ``--gpu``, with ``JAX_PLATFORMS=cuda``.
+    timed: its outputs quote seconds measured while it runs: it runs with no other job beside it
+      (``--jobs``).
     """
 
     name: str
@@ -69,6 +79,13 @@ class Job:
     modules: tuple = ()
     inputs: tuple = ()
     gpu: bool = False
+    timed: bool = False
+
+    @property
+    def outputs(self) -> set:
+        """The files it writes: its blocks' pages and its results (two jobs that share one do
+        not run side by side: a page is read, changed and written whole)."""
+        return {page for page, _ in self.blocks} | set(self.results)
 
     @property
     def env(self) -> dict:
@@ -99,10 +116,10 @@ class Job:
 
 
 def job(name: str, module: str, *args: str, blocks=(), results=(), inputs=(),
-        gpu: bool = False) -> Job:
+        gpu: bool = False, timed: bool = False) -> Job:
     """The ``Job`` running ``python -m experiments.<module> *args``."""
     return Job(name, ("-m", f"experiments.{module}", *args), tuple(blocks), tuple(results),
-               (f"experiments.{module}",), tuple(inputs), gpu)
+               (f"experiments.{module}",), tuple(inputs), gpu, timed or gpu)
 
 
 def _outputs(folder: str, page: str) -> tuple:
@@ -117,18 +134,19 @@ GPU_BENCH = ("--torch-threads", "1", *_outputs("results/bench", BENCH))
 
 JOBS = (
     job("costs", "costs", *_outputs("results/costs", "docs/choosing.md"),
-        blocks=[("docs/choosing.md", "costs")], results=["results/costs/results.json"]),
+        blocks=[("docs/choosing.md", "costs")], results=["results/costs/results.json"], timed=True),
     job("costs_paper", "costs", "--paper", *_outputs("results/costs", BENCH),
-        blocks=[(BENCH, "costs_paper")], results=["results/costs/results_paper.json"]),
+        blocks=[(BENCH, "costs_paper")], results=["results/costs/results_paper.json"], timed=True),
     job("tutorial", "tutorial", "docs/tutorial", inputs=["docs/tutorial.md"],
-        results=["docs/tutorial/output.txt", "docs/tutorial/lorenz63_tutorial.png"]),
+        results=["docs/tutorial/output.txt", "docs/tutorial/lorenz63_tutorial.png"], timed=True),
     job("table", "table", *_outputs("results/table", "docs/results.md"), "--readme", "README.md",
         blocks=[("docs/results.md", None), ("README.md", None)],
-        results=["results/table/results.json", "results/table/double_well/estimates.png"]),
+        results=["results/table/results.json", "results/table/double_well/estimates.png"],
+        timed=True),
     job("zoo_N1000", "zoo", *_outputs("results/zoo", ZOO), blocks=[(ZOO, "N1000")],
-        results=["results/zoo/results_N1000.json"]),
+        results=["results/zoo/results_N1000.json"], timed=True),
     job("zoo_N50", "zoo", "--particles", "50", *_outputs("results/zoo", ZOO),
-        blocks=[(ZOO, "N50")], results=["results/zoo/results_N50.json"]),
+        blocks=[(ZOO, "N50")], results=["results/zoo/results_N50.json"], timed=True),
     job("defaults_N1000", "defaults", *_outputs("results/defaults", DEFAULTS),
         blocks=[(DEFAULTS, "N1000")], results=["results/defaults/results_N1000.json"]),
     job("defaults_N50", "defaults", "--particles", "50", *_outputs("results/defaults", DEFAULTS),
@@ -148,9 +166,9 @@ JOBS = (
     job("fitting", "fitting", *_outputs("results/fitting", "docs/fitting.md"),
         blocks=[("docs/fitting.md", "evidence"), ("docs/fitting.md", "comparison"),
                 ("docs/fitting.md", "fits")],
-        results=["results/fitting/results.json", "docs/fitting.png"]),
+        results=["results/fitting/results.json", "docs/fitting.png"], timed=True),
     job("lorenz96", "lorenz96", *_outputs("results/lorenz96", L96), blocks=[(L96, None)],
-        results=["results/lorenz96/results.json"]),
+        results=["results/lorenz96/results.json"], timed=True),
     job("lorenz96_adaptive", "lorenz96", "--study", "adaptive",
         *_outputs("results/lorenz96", L96), blocks=[(L96, "adaptive")],
         results=["results/lorenz96/results_adaptive.json"]),
@@ -158,13 +176,14 @@ JOBS = (
         blocks=[(L96, "robustness")], results=["results/lorenz96/results_robustness.json",
                                                "docs/lorenz96_robustness.png"]),
     job("lorenz96_scaling", "lorenz96_scaling", *_outputs("results/lorenz96", L96),
-        blocks=[(L96, "scaling")], results=["results/lorenz96/scaling.json"]),
+        blocks=[(L96, "scaling")], results=["results/lorenz96/scaling.json"], timed=True),
     job("bench_kalman", "bench", *CPU_BENCH, blocks=[(BENCH, "kalman_L20")],
-        results=["results/bench/results_kalman_L20.json"]),
+        results=["results/bench/results_kalman_L20.json"], timed=True),
     job("bench_clipped", "bench", "--guidance", "clipped", "--steps", "500", *CPU_BENCH,
-        blocks=[(BENCH, "clipped_L500")], results=["results/bench/results_clipped_L500.json"]),
+        blocks=[(BENCH, "clipped_L500")], results=["results/bench/results_clipped_L500.json"],
+        timed=True),
     job("profile", "profile", *_outputs("results/profile", BENCH), blocks=[(BENCH, "profile")],
-        results=["results/profile/results.json"]),
+        results=["results/profile/results.json"], timed=True),
     job("lorenz96_scaling_gpu", "lorenz96_scaling", *_outputs("results/lorenz96", L96),
         blocks=[(L96, "scaling_gpu")], results=["results/lorenz96/scaling_gpu.json"], gpu=True),
     job("bench_kalman_gpu", "bench", "--dims", "1,10", "--device", "cuda", "--compile-mode",
@@ -176,6 +195,10 @@ JOBS = (
         results=["results/bench/results_clipped_L500_gpu.json"], gpu=True),
 )
 GPU_JOBS = {j.name for j in JOBS if j.gpu}
+DEFAULT_WIDTH = min(2, os.cpu_count() or 1)
+"""``--jobs``' default: two jobs side by side on a machine with two cores or more. A job's
+compilation runs on one core, so two jobs that time nothing keep both busy where one leaves one
+idle for much of its time."""
 
 
 # ------------------------------------------------------------------------------------------------
@@ -297,6 +320,49 @@ def run_job(j: Job) -> int:
     return interrupt.run([sys.executable, *j.argv], cwd=ROOT, env=env).returncode
 
 
+def _relay(child, name: str) -> None:
+    """Print each line ``child`` writes, prefixed with its job's name (side by side)."""
+    for line in child.stdout:
+        print(f"[{name}] {line.rstrip()}", flush=True)
+
+
+def may_start(j: Job, running: list) -> bool:
+    """Whether ``j`` may start beside the ``running`` jobs: a timed job only alone, nothing
+    beside a timed one, and no two jobs that write the same file (``Job.outputs``)."""
+    if not running:
+        return True
+    return not j.timed and not any(r.timed or j.outputs & r.outputs for r in running)
+
+
+def run_side_by_side(todo: list, width: int, finish) -> None:
+    """Run ``todo`` (``(step, job)`` pairs, in order) up to ``width`` at a time (``may_start``:
+    a later job starts before a waiting one where only it may), each job's output prefixed
+    with its name; ``finish(step, job, status, seconds)`` as each ends."""
+    pending, running = list(todo), {}
+    while pending or running:
+        for step, j in list(pending):
+            if len(running) >= width:
+                break
+            if not may_start(j, [r[1] for r in running.values()]):
+                continue
+            pending.remove((step, j))
+            print(f"{step}: started ({j.command})", flush=True)
+            child = interrupt.spawn([sys.executable, *j.argv], cwd=ROOT,
+                                    env={**os.environ, **j.env}, stdout=subprocess.PIPE,
+                                    stderr=subprocess.STDOUT, text=True, bufsize=1)
+            relay = threading.Thread(target=_relay, args=(child, j.name), daemon=True)
+            relay.start()
+            running[child] = (step, j, time.perf_counter(), relay)
+        time.sleep(0.2)
+        for child in [c for c in running if c.poll() is not None]:
+            step, j, t0, relay = running.pop(child)
+            relay.join()
+            interrupt.CHILDREN.discard(child)
+            with interrupt.WRITING:  # an interrupt in flight ends the process first
+                pass
+            finish(step, j, child.returncode, time.perf_counter() - t0)
+
+
 def columns(rows: list) -> list:
     """Lines of ``rows`` (lists of strings) in left-aligned columns."""
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
@@ -307,44 +373,55 @@ def blocks_text(j: Job) -> str:
     return ", ".join(label(p, t) for p, t in j.blocks) or "-"
 
 
-def run_all(jobs, force: bool = False, gpu: bool = False, dry: bool = False) -> int:
+def run_all(jobs, force: bool = False, gpu: bool = False, dry: bool = False,
+            width: int = 1) -> int:
     """Run each of ``jobs`` that is not up to date (all with ``force``; GPU jobs only with
-    ``gpu``), in order; print the progress and the summary; 0 if none failed, else 1."""
+    ``gpu``), in order, up to ``width`` side by side (``run_side_by_side``); print the progress
+    and the summary; 0 if none failed, else 1."""
     state = read_state()
     stale_names = {name for _, _, name, _ in stale_blocks()[0]}
-    rows, failed = [["job", "blocks", "result", "time"]], []
+    rows, failed, todo, digests = {}, [], [], {}
     for i, j in enumerate(jobs, 1):
-        step, digest = f"[{i}/{len(jobs)}] {j.name}", j.digest()
-        last = state.get(j.name, {}).get("seconds")
+        step = f"[{i}/{len(jobs)}] {j.name}"
+        digest, last = j.digest(), state.get(j.name, {}).get("seconds")
         if j.gpu and not gpu:
-            rows.append([j.name, blocks_text(j), "skipped: needs a GPU (--gpu)", "-"])
+            rows[step] = [j.name, blocks_text(j), "skipped: needs a GPU (--gpu)", "-"]
             print(f"{step}: skipped, its blocks are a GPU's (--gpu on a machine with one)")
-            continue
-        if not force and up_to_date(j, state, stale_names, digest):
+        elif not force and up_to_date(j, state, stale_names, digest):
             took = "-" if last is None else f"{duration(last)} last time"
-            rows.append([j.name, blocks_text(j), "up to date", took])
+            rows[step] = [j.name, blocks_text(j), "up to date", took]
             print(f"{step}: up to date (code {digest})")
-            continue
-        if dry:
+        elif dry:
             print(f"{step}: {j.command}")
-            continue
-        print(f"{step}: started ({j.command})", flush=True)
-        t0 = time.perf_counter()
-        code = run_job(j)
-        seconds = time.perf_counter() - t0
-        if code != 0:
-            failed.append(j.name)
-            rows.append([j.name, blocks_text(j), f"failed (exit {code})", duration(seconds)])
-            print(f"{step}: failed with exit status {code} after {duration(seconds)}", flush=True)
-            continue
-        state[j.name] = {"code": digest, "seconds": round(seconds, 1), "command": j.recorded,
-                         "date": datetime.date.today().isoformat()}
-        write_state(state)
-        rows.append([j.name, blocks_text(j), "remade", duration(seconds)])
-        print(f"{step}: done in {duration(seconds)}", flush=True)
+        else:
+            todo.append((step, j))
+            digests[step] = digest
     if dry:
         return 0
-    print("\n" + "\n".join(columns(rows)))
+
+    def finish(step: str, j: Job, code: int, seconds: float) -> None:
+        if code != 0:
+            failed.append(j.name)
+            rows[step] = [j.name, blocks_text(j), f"failed (exit {code})", duration(seconds)]
+            print(f"{step}: failed with exit status {code} after {duration(seconds)}",
+                  flush=True)
+            return
+        state[j.name] = {"code": digests[step], "seconds": round(seconds, 1),
+                         "command": j.recorded, "date": datetime.date.today().isoformat()}
+        write_state(state)
+        rows[step] = [j.name, blocks_text(j), "remade", duration(seconds)]
+        print(f"{step}: done in {duration(seconds)}", flush=True)
+
+    if width > 1:
+        run_side_by_side(todo, width, finish)
+    else:
+        for step, j in todo:
+            print(f"{step}: started ({j.command})", flush=True)
+            t0 = time.perf_counter()
+            finish(step, j, run_job(j), time.perf_counter() - t0)
+    order = [f"[{i}/{len(jobs)}] {j.name}" for i, j in enumerate(jobs, 1)]
+    print("\n" + "\n".join(columns([["job", "blocks", "result", "time"]]
+                                    + [rows[s] for s in order if s in rows])))
     if failed:
         print(f"python -m experiments.regenerate: {len(failed)} job(s) failed "
               f"({', '.join(failed)}); their output is above; rerun to retry them",
@@ -389,6 +466,9 @@ def main(argv=None) -> int:
                    help="only these jobs (comma-separated names, as --list shows them)")
     p.add_argument("--gpu", action="store_true", help="also run the jobs of the GPU blocks")
     p.add_argument("--force", action="store_true", help="run the jobs even when up to date")
+    p.add_argument("--jobs", type=harness.int_at_least(1), default=DEFAULT_WIDTH, metavar="N",
+                   help="run up to N jobs side by side: those that time nothing and write "
+                        "different files (default: %(default)s, this machine's cores up to 2)")
     what = p.add_mutually_exclusive_group()
     what.add_argument("--list", action="store_true", help="list the jobs and run nothing")
     what.add_argument("--dry-run", action="store_true",
@@ -403,7 +483,7 @@ def main(argv=None) -> int:
     if args.stale:
         print_stale()
         return 0
-    return run_all(jobs, force=args.force, gpu=args.gpu, dry=args.dry_run)
+    return run_all(jobs, force=args.force, gpu=args.gpu, dry=args.dry_run, width=args.jobs)
 
 
 if __name__ == "__main__":

@@ -242,3 +242,63 @@ def running(pid: int) -> bool:
             return False
         time.sleep(0.05)
     return True
+
+
+def timing_job(name: str, timed: bool, output: str) -> regenerate.Job:
+    """A job without blocks that prints a line, logs its start and end and sleeps 1 s between,
+    and writes ``output``."""
+    script = (f"import pathlib, time; print('hello from {name}', flush=True); "
+              f"log = lambda w: open('times.log', 'a').write('{name} ' + w + ' ' "
+              f"+ str(time.time()) + '\\n'); "
+              f"log('start'); time.sleep(1.0); pathlib.Path({output!r}).write_text('x'); "
+              f"log('end')")
+    return regenerate.Job(name, ("-c", script), (), (output,), ("experiments.job_a",),
+                          timed=timed)
+
+
+def spans() -> dict:
+    found = {}
+    for line in pathlib.Path("times.log").read_text().split("\n"):
+        if line:
+            name, what, t = line.split()
+            found.setdefault(name, {})[what] = float(t)
+    return found
+
+
+def test_jobs_that_time_nothing_run_side_by_side_and_timed_ones_alone(tree, monkeypatch,
+                                                                      capsys):
+    jobs = (timing_job("first", False, "one.txt"), timing_job("second", False, "two.txt"),
+            timing_job("timed", True, "three.txt"), timing_job("same", False, "one.txt"))
+    monkeypatch.setattr(regenerate, "JOBS", jobs)
+    assert regenerate.main(["--force", "--jobs", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "[first] hello from first" in out and "[timed] hello from timed" in out
+    s = spans()
+
+    def overlap(a, b):
+        return s[a]["start"] < s[b]["end"] and s[b]["start"] < s[a]["end"]
+
+    assert overlap("first", "second")  # neither is timed, different files
+    assert not overlap("first", "same")  # both write one.txt
+    assert not any(overlap("timed", other) for other in ("first", "second", "same"))
+    summary = [line.split()[:3] for line in out.split("\n\n", 1)[1].splitlines()[1:]]
+    assert summary == [[name, "-", "remade"] for name in ("first", "second", "timed", "same")]
+    state = json.loads((tree / regenerate.STATE).read_text())["jobs"]
+    assert sorted(state) == ["first", "same", "second", "timed"]
+
+
+def test_one_job_at_a_time_with_jobs_1(tree, monkeypatch):
+    jobs = (timing_job("first", False, "one.txt"), timing_job("second", False, "two.txt"))
+    monkeypatch.setattr(regenerate, "JOBS", jobs)
+    assert regenerate.main(["--force", "--jobs", "1"]) == 0
+    s = spans()
+    assert s["first"]["end"] <= s["second"]["start"]
+
+
+def test_the_timed_jobs_are_those_whose_outputs_quote_seconds():
+    timed = {j.name for j in regenerate.JOBS if j.timed}
+    assert {"table", "zoo_N1000", "zoo_N50", "costs", "profile", "bench_kalman", "lorenz96",
+            "tutorial"} <= timed
+    assert not {"defaults_N1000", "defaults_N50", "small_ensembles_N50",
+                "lorenz96_robustness"} & timed
+    assert all(j.timed for j in regenerate.JOBS if j.gpu)
