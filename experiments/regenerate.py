@@ -115,11 +115,12 @@ class Job:
         return digest.hexdigest()[:16]
 
 
-def job(name: str, module: str, *args: str, blocks=(), results=(), inputs=(),
+def job(name: str, module: str, *args: str, blocks=(), results=(), inputs=(), uses=(),
         gpu: bool = False, timed: bool = False) -> Job:
-    """The ``Job`` running ``python -m experiments.<module> *args``."""
+    """The ``Job`` running ``python -m experiments.<module> *args``; ``uses``: modules its
+    code runs without importing them (in a subprocess), in its digest too."""
     return Job(name, ("-m", f"experiments.{module}", *args), tuple(blocks), tuple(results),
-               (f"experiments.{module}",), tuple(inputs), gpu, timed or gpu)
+               (f"experiments.{module}", *uses), tuple(inputs), gpu, timed or gpu)
 
 
 def _outputs(folder: str, page: str) -> tuple:
@@ -137,7 +138,8 @@ JOBS = (
         blocks=[("docs/choosing.md", "costs")], results=["results/costs/results.json"], timed=True),
     job("costs_paper", "costs", "--paper", *_outputs("results/costs", BENCH),
         blocks=[(BENCH, "costs_paper")], results=["results/costs/results_paper.json"], timed=True),
-    job("tutorial", "tutorial", "docs/tutorial", inputs=["docs/tutorial.md"],
+    # the tutorial's code runs in a subprocess: the library is named, not imported
+    job("tutorial", "tutorial", "docs/tutorial", inputs=["docs/tutorial.md"], uses=["csf_jax"],
         results=["docs/tutorial/output.txt", "docs/tutorial/lorenz63_tutorial.png"], timed=True),
     job("table", "table", *_outputs("results/table", "docs/results.md"), "--readme", "README.md",
         blocks=[("docs/results.md", None), ("README.md", None)],

@@ -302,3 +302,14 @@ def test_the_timed_jobs_are_those_whose_outputs_quote_seconds():
     assert not {"defaults_N1000", "defaults_N50", "small_ensembles_N50",
                 "lorenz96_robustness"} & timed
     assert all(j.timed for j in regenerate.JOBS if j.gpu)
+
+
+def test_every_jobs_digest_covers_the_library(monkeypatch):
+    """A change of ``csf_jax`` restales every job, the tutorial too (whose code runs in a
+    subprocess, not imported by its module)."""
+    before = {j.name: j.digest() for j in regenerate.JOBS}
+    read = harness.source
+    init = harness.LIBRARY / "__init__.py"
+    monkeypatch.setattr(harness, "source", lambda f: read(f) + (b"#" if f == init else b""))
+    after = {j.name: j.digest() for j in regenerate.JOBS}
+    assert [name for name in before if before[name] == after[name]] == []
