@@ -300,10 +300,12 @@ def _imports_in(text: bytes, library: pathlib.Path, experiments: pathlib.Path) -
 
 @functools.cache
 def job_digest(*modules: str) -> str:
-    """A digest of the source of a job's ``modules`` (dotted names, ``experiments.zoo``) and of
+    """A digest of the code of a job's ``modules`` (dotted names, ``experiments.zoo``) and of
     every ``csf_jax`` and ``experiments`` module they import, transitively (``import csf_jax``
     counts the package's ``__init__`` and so what it imports): the code that made a page's
-    generated block (``made_by``). 16 hex digits."""
+    generated block (``made_by``). Each file counts by ``code_tokens``, so an edit of its
+    comments, docstrings or layout leaves the digest, and the blocks, as they were. 16 hex
+    digits."""
     todo = [_package_file(m) for m in modules]
     missing = [m for m, f in zip(modules, todo) if f is None]
     if missing:
@@ -319,7 +321,7 @@ def job_digest(*modules: str) -> str:
     for file in sorted(seen):
         root = LIBRARY if file.is_relative_to(LIBRARY) else EXPERIMENTS
         label = f"{root.name}/{file.relative_to(root).as_posix()}"
-        digest.update(label.encode() + b"\0" + source(file))
+        digest.update(label.encode() + b"\0" + code_tokens(source(file)))
     return digest.hexdigest()[:16]
 
 
@@ -345,8 +347,42 @@ def made_by(command: str | None = None) -> str | None:
 
 
 def source(file: pathlib.Path) -> bytes:
-    """The bytes of a source file, as the code digest reads them."""
+    """The bytes of a source file."""
     return file.read_bytes()
+
+
+@functools.lru_cache(maxsize=1024)
+def code_tokens(text: bytes) -> bytes:
+    """What ``job_digest`` reads of a Python source ``text``: its tokens, one per line as
+    ``TYPE string``, without what cannot change what it computes: comments, line breaks inside
+    brackets, the spaces between tokens, and statements that are only a string literal (the
+    docstrings of modules, classes and functions, and those under an assignment). Indentation
+    counts, as INDENT and DEDENT, and so do the ends of statements. The tokens are Python's (``tokenize``), so the digest of a file
+    can differ between Python versions (an f-string is one token before 3.12, several after)."""
+    import ast
+    import io
+    import tokenize
+
+    strings = {(node.lineno, node.col_offset): (node.end_lineno, node.end_col_offset)
+               for node in ast.walk(ast.parse(text))
+               if isinstance(node, ast.Expr) and isinstance(node.value, ast.Constant)
+               and isinstance(node.value.value, str)}
+    skip = {tokenize.COMMENT, tokenize.NL, tokenize.ENCODING}
+    layout = {tokenize.INDENT, tokenize.DEDENT, tokenize.NEWLINE, tokenize.ENDMARKER}
+    out, until, after = [], None, False
+    for tok in tokenize.tokenize(io.BytesIO(text).readline):
+        if tok.type in skip or (until is not None and tok.start < until):
+            continue
+        if after and tok.type == tokenize.NEWLINE:  # the line break that ends such a statement
+            after = False
+            continue
+        until = strings.get(tok.start)
+        after = until is not None
+        if after:
+            continue
+        name = tokenize.tok_name[tok.type]
+        out.append(name if tok.type in layout else f"{name} {tok.string}")
+    return "\n".join(out).encode()
 
 
 def cell_key(case: Case, run: int, method: csf_jax.Method, model,

@@ -19,8 +19,9 @@ remade and how long each job took.
   an earlier one that must wait; each line a job prints is prefixed with its name.
 * **Code of a block.** Each job writes, as the first line inside each block it makes, the
   comment ``<!-- made by: COMMAND; code DIGEST -->`` (``harness.made_by``): DIGEST is
-  ``harness.job_digest`` of the job's module, the source of it and of every ``csf_jax`` and
-  ``experiments`` module it imports, transitively. A block is *stale* when it records no code,
+  ``harness.job_digest`` of the job's module, the code of it and of every ``csf_jax`` and
+  ``experiments`` module it imports, transitively (their tokens: comments, docstrings and
+  layout do not count). A block is *stale* when it records no code,
   other code than the job's now, another command than the job's, or when the page lacks it;
   ``--stale`` lists them (and blocks that no job makes) and runs nothing.
 * **Resume.** ``results/regenerate.json`` (``STATE``) records, after each job finishes, the

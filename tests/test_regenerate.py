@@ -198,6 +198,33 @@ def test_the_digest_follows_the_jobs_imports():
         harness.job_digest("experiments.nope")
 
 
+CODE = b'''"""A module."""
+import math  # the library
+
+
+def area(r,
+         scale=1.0):
+    """The disc's area."""
+    label = "not a docstring"
+    return scale * math.pi * r ** 2
+'''
+
+
+@pytest.mark.parametrize("edit, same", [
+    (lambda s: s.replace(b'"""The disc\'s area."""', b'"""Pi r squared,\n    scaled."""'), True),
+    (lambda s: s.replace(b"  # the library", b"") + b"# the end\n", True),
+    (lambda s: s.replace(b"r,\n         scale", b"r, scale").replace(b"* math", b"*  math"), True),
+    (lambda s: s.replace(b'"""A module."""\n', b""), True),
+    (lambda s: s.replace(b"r ** 2", b"r ** 3"), False),
+    (lambda s: s.replace(b"not a docstring", b"not a docstring!"), False),
+    (lambda s: s.replace(b"    return", b"    if r:\n        return"), False),
+])
+def test_the_digest_reads_code_not_comments_docstrings_or_layout(edit, same):
+    """``code_tokens``: an edit of documentation or layout keeps a file's digest (its blocks stay
+    fresh); any edit of what runs changes it."""
+    assert (harness.code_tokens(edit(CODE)) == harness.code_tokens(CODE)) is same
+
+
 def test_every_block_of_the_pages_has_a_job():
     stale, count = regenerate.stale_blocks()
     assert count >= 18
@@ -310,6 +337,6 @@ def test_every_jobs_digest_covers_the_library(monkeypatch):
     before = {j.name: j.digest() for j in regenerate.JOBS}
     read = harness.source
     init = harness.LIBRARY / "__init__.py"
-    monkeypatch.setattr(harness, "source", lambda f: read(f) + (b"#" if f == init else b""))
+    monkeypatch.setattr(harness, "source", lambda f: read(f) + (b"\nX = 1\n" if f == init else b""))
     after = {j.name: j.digest() for j in regenerate.JOBS}
     assert [name for name in before if before[name] == after[name]] == []
