@@ -2,15 +2,13 @@
 
 The filters draw most of their randomness as standard normals: the sampler's K candidates per
 member and level, the particle components' importance draws, the process noise. On a CPU,
-``jax.random.normal`` spends about 2.7 ms on 80,000 of them (the sampler's draws for one level
-at N = 1000, d = 10), more than the level's linear algebra, for two reasons:
+``jax.random.normal`` can cost a level more than its linear algebra, for two reasons:
 
 * its Threefry-2x32 hash is lowered on a CPU as a rolled loop of five iterations, each writing
-  its two (n,) words to memory: about 15 ns a number where the unrolled rounds, one fused
-  elementwise loop, take 2.5 ns;
+  its two (n,) words to memory, where the unrolled rounds are one fused elementwise loop;
 * its ``erf_inv`` fuses ``log1p`` with the two polynomials and the select into one loop that the
-  compiler does not vectorise: 17 ns a number, against 2 ns when ``log1p`` runs in a loop of its
-  own (here: a two-iteration ``lax.map``, which no fusion crosses).
+  compiler does not vectorise, where ``log1p`` in a loop of its own (here: a two-iteration
+  ``lax.map``, which no fusion crosses) leaves the rest vectorised.
 
 ``normal`` computes the same function with those two changes: the bits of
 ``jax.random.bits`` under ``jax_threefry_partitionable`` (the Threefry-2x32 of the key and the
@@ -18,7 +16,7 @@ element's 64-bit index, its two words xor-ed), mapped to ``[nextafter(-1, 0), 1)
 ``jax.random.uniform`` does, and ``sqrt(2) erf_inv(u)`` by the same single-precision polynomials
 (Giles 2010) and operations as XLA's. The draws are identical to ``jax.random.normal``'s, bit for
 bit (``tests/test_random.py``: many keys and shapes, under ``jit`` and ``vmap``), so a filter's
-numbers do not change; they are 5x faster (0.5 ms for the 80,000). Where the identity is not
+numbers do not change; only their cost does. Where the identity is not
 established (not a CPU, another key implementation or bit layout, another dtype than float32),
 ``normal`` is ``jax.random.normal`` itself.
 """

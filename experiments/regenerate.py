@@ -154,6 +154,8 @@ JOBS = (
         blocks=[(DEFAULTS, "N1000")], results=["results/defaults/results_N1000.json"]),
     job("defaults_N50", "defaults", "--particles", "50", *_outputs("results/defaults", DEFAULTS),
         blocks=[(DEFAULTS, "N50")], results=["results/defaults/results_N50.json"]),
+    job("exact_jumps", "exact_jumps", *_outputs("results/exact_jumps", DEFAULTS),
+        blocks=[(DEFAULTS, "jumps")], results=["results/exact_jumps/results.json"]),
     job("flows_N1000", "defaults", "--candidates", "CSF,mode_flow,member_flow", "--tag",
         "flows_N1000", *_outputs("results/defaults", DEFAULTS), blocks=[(DEFAULTS, "flows_N1000")],
         results=["results/defaults/results_flows_N1000.json"]),

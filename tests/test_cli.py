@@ -11,7 +11,7 @@ import pytest
 from experiments import harness
 
 JOBS = ("run", "table", "zoo", "defaults", "small_ensembles", "lorenz96", "lorenz96_scaling",
-        "lorenz96_robustness", "train", "bench", "tutorial")
+        "lorenz96_robustness", "train", "bench", "tutorial", "exact_jumps")
 
 # measurement prose: timings, sizes, speed-ups and quoted errors
 MEASUREMENT = re.compile(

@@ -128,7 +128,7 @@ def test_explicit_flags_win_over_quick_in_the_main_job(tmp_path, monkeypatch, ar
 
 CACHED_JOBS = [("run", ["double_well", "--methods", "EnKF"]), ("table", []), ("zoo", []),
                ("small_ensembles", []), ("defaults", []), ("lorenz96", []),
-               ("lorenz96_robustness", [])]
+               ("lorenz96_robustness", []), ("exact_jumps", [])]
 
 
 @pytest.mark.parametrize("job,argv", CACHED_JOBS, ids=[j for j, _ in CACHED_JOBS])
