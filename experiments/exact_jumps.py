@@ -35,8 +35,9 @@ TEN_TIMES = 10 * csf_jax.MixtureConfig().shock_hazard
 
 
 def hazards(model) -> dict:
-    """The hazards compared, by their rows' labels: none, CSF's default, ten times it, and the truth's mean
-    rate over the steps where its jump can come (``WellConfig``: one in [0.2 K, 0.8 K))."""
+    """The hazards compared, by their rows' labels: none, CSF's default, ten times it, and the
+    truth's mean rate over the steps where its jump can come (``WellConfig``: one in [0.2 K,
+    0.8 K))."""
     default = csf_jax.MixtureConfig().shock_hazard
     rate = round(0.6 * model.num_steps)
     return {"exact, no jumps": 0.0, f"exact, hazard {default:g} (CSF's)": default,
