@@ -357,8 +357,9 @@ def code_tokens(text: bytes) -> bytes:
     ``TYPE string``, without what cannot change what it computes: comments, line breaks inside
     brackets, the spaces between tokens, and statements that are only a string literal (the
     docstrings of modules, classes and functions, and those under an assignment). Indentation
-    counts, as INDENT and DEDENT, and so do the ends of statements. The tokens are Python's (``tokenize``), so the digest of a file
-    can differ between Python versions (an f-string is one token before 3.12, several after)."""
+    counts, as INDENT and DEDENT, and so do the ends of statements. The tokens are Python's
+    (``tokenize``), so the digest of a file can differ between Python versions (an f-string is
+    one token before 3.12, several after)."""
     import ast
     import io
     import tokenize
