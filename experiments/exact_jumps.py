@@ -7,8 +7,8 @@ jump law a filter assumes.
 The reference of the paper's well problems weighs the truth's own jumps: it knows that a jump
 reflects the state (``x -> -x``) and how often one comes (``csf_jax.filters.reference``). A
 filter that is not told either assumes a jump law of its own; CSF's is ``shock_hazard`` a step
-(``MixtureConfig``) and a grid of widths around the ensemble. Which part of CSF's excess over the reference is
-that assumption, and which its approximation, this measures with the exact Bayes filter of the
+(``MixtureConfig``) and a grid of widths around the ensemble. Which part of CSF's excess over the
+reference is that assumption, and which its approximation, this measures with the exact Bayes filter of the
 1-D model (``grid_filter``: the filtering density on a grid) under a generic jump law, ``x_{k+1}
 = f(x_k) + N(0, q^2 + s^2)`` with probability ``hazard`` (s = ``JUMP_STD``), at the hazards of
 ``hazards``: none, CSF's, ten times it, and the truth's mean rate (one jump per run, at a step in
