@@ -93,6 +93,7 @@ MIN_ROW_BLOCK = 16
 # step short) down to 2^-12 (where it is steeper, long), and 0
 TRANSPORT_STEPS = tuple(2.0 ** k for k in range(6, -13, -1)) + (0.0,)
 TRANSPORT_FLOWS = ("hybrid", "member", "mode")
+KERNEL_CHOICES = ("loo", "evidence")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -195,7 +196,13 @@ class MixtureConfig:
         mean and about its covariance. Where no particle is within ``sqrt(Q)`` of the
         observation's preimage, the kernels still reach it, and the particle reading keeps
         evidence the point components lose to the ensemble's Gaussian (folding's first steps,
-        docs/defaults.md); as N grows the kernels shrink to the points.
+        docs/defaults.md); as N grows the kernels shrink to the points. A tuple of such factors:
+        the particle reading is a mixture over the widths, each width's components weighed by
+        its evidence and by the width's prior weight (``kernel_choice``).
+      kernel_choice: the prior weights of the widths of a tuple ``particle_kernel``: "loo" in
+        proportion to how well each describes the forecast ensemble (``loo_score``, the
+        leave-one-out density of the members ``f(x_j) + v_j`` under the others' kernels: a
+        multimodal forecast keeps its modes, a sparse one gets wide kernels), "evidence" equal.
     """
 
     particles: bool = True
@@ -211,12 +218,13 @@ class MixtureConfig:
     ensemble_iterations: int = 12
     ensemble_proposals: int = 64
     particle_ess: float = 2.5
-    particle_kernel: float = 1.0
+    particle_kernel: float | tuple = 1.0
     ensemble_draws: str = "transport"
     transport_levels: int = 10
     transport_iterations: int = 1
     transport_flow: str = "hybrid"
     wild_ranges: float = 1e3
+    kernel_choice: str = "loo"
 
     def __post_init__(self):
         _checks.check_fields(self)
@@ -245,10 +253,11 @@ class MixtureConfig:
                 and math.isfinite(self.particle_ess)):
             raise ValueError(f"MixtureConfig.particle_ess must be a finite number >= 0, got "
                              f"{self.particle_ess!r}")
-        if not (isinstance(self.particle_kernel, (int, float)) and 0.0 <= self.particle_kernel
-                <= 1.0):
-            raise ValueError(f"MixtureConfig.particle_kernel must lie in [0, 1], got "
-                             f"{self.particle_kernel!r}")
+        widths = kernel_widths(self.particle_kernel)
+        if not widths or not all(isinstance(a, (int, float)) and not isinstance(a, bool)
+                                 and 0.0 <= a <= 1.0 for a in widths):
+            raise ValueError(f"MixtureConfig.particle_kernel must lie in [0, 1], or be a "
+                             f"non-empty tuple of such factors, got {self.particle_kernel!r}")
         if self.ensemble_draws not in ENSEMBLE_DRAWS:
             raise ValueError(f"MixtureConfig.ensemble_draws must be one of {ENSEMBLE_DRAWS}, got "
                              f"{self.ensemble_draws!r}")
@@ -259,6 +268,9 @@ class MixtureConfig:
         levels = self.transport_levels
         if isinstance(levels, bool) or not isinstance(levels, int) or levels < 0:
             raise ValueError(f"MixtureConfig.transport_levels must be an int >= 0, got {levels!r}")
+        if self.kernel_choice not in KERNEL_CHOICES:
+            raise ValueError(f"MixtureConfig.kernel_choice must be one of {KERNEL_CHOICES}, got "
+                             f"{self.kernel_choice!r}")
         if self.transport_flow not in TRANSPORT_FLOWS:
             raise ValueError(f"MixtureConfig.transport_flow must be one of {TRANSPORT_FLOWS}, got "
                              f"{self.transport_flow!r}")
@@ -382,15 +394,15 @@ def select(model: StateSpaceModel, config: MixtureConfig, key, y, centers, prior
     log_hazard = jnp.where(informed, jnp.log(hazard), -jnp.inf)
     log_calm = jnp.where(informed, jnp.log1p(-hazard), 0.0)
     if uses_particles(config, model):
-        kernels, q_cov = centers, process_cov(model, dtype)
-        if config.particle_kernel > 0:
-            h2 = config.particle_kernel * silverman(n, d) ** 2
-            centre = centers.mean(0)
-            kernels, q_cov = centre + math.sqrt(1.0 - h2) * (centers - centre), q_cov + h2 * cov
-        q_prec = precision(q_cov + 1e-12 * eye)
-        log_z_part, draws, _, _ = _component_evidence(
-            model, y, k_part, kernels, q_prec, config.iterations, config.proposals, guide)
-        log_z_part = jnp.where(jnp.isfinite(log_z_part), log_z_part, -jnp.inf)
+        widths = kernel_widths(config.particle_kernel)
+        keys = [k_part] if len(widths) == 1 else list(jax.random.split(k_part, len(widths)))
+        found = [_kernel_evidence(model, config, y, k, centers, cov, eye, a, guide)
+                 for a, k in zip(widths, keys)]
+        log_z_part, draws = found[0]
+        if len(widths) > 1:  # each width a hypothesis, of prior weight its fit to the forecast
+            prior_w = kernel_prior(model, config, centers, prior_ens, cov, eye, widths)
+            log_z_part = jnp.concatenate([z + w for (z, _), w in zip(found, prior_w)])
+            draws = jnp.concatenate([x for _, x in found])
         log_bf = logsumexp(log_z_part) - jnp.log(n) - log_z_ens[0]
         if config.particle_ess > 0:
             penalty = ess_penalty(log_z_part, min(config.particle_ess * d, n))
@@ -440,6 +452,57 @@ def select(model: StateSpaceModel, config: MixtureConfig, key, y, centers, prior
         informed, calm + proposal_constant(d, tail_df(model), dtype) + const.astype(dtype), 0.0)
     return Selection(kind, draws, inflation, log_bf, particle_weight, shock_weight, informed,
                      log_evidence)
+
+
+def kernel_widths(particle_kernel) -> tuple:
+    """``MixtureConfig.particle_kernel`` as a tuple of factors on Silverman's bandwidth."""
+    return tuple(particle_kernel) if isinstance(particle_kernel, tuple) else (particle_kernel,)
+
+
+def _kernel(model, centers, cov, eye, width: float):
+    """The particle components at kernel factor ``width``: centres (N, d), covariance (d, d)."""
+    n, d = centers.shape
+    kernels, q_cov = centers, process_cov(model, centers.dtype)
+    if width > 0:
+        h2 = width * silverman(n, d) ** 2
+        centre = centers.mean(0)
+        kernels, q_cov = centre + math.sqrt(1.0 - h2) * (centers - centre), q_cov + h2 * cov
+    return kernels, q_cov + 1e-12 * eye
+
+
+def loo_score(kernels, q_cov, points):
+    """The leave-one-out log density of ``points (N, d)`` (``f(x_j) + v_j``) under the mixture
+    of the other members' kernels ``N(kernels_i (N, d), q_cov (d, d))``, summed over j: how well
+    a kernel width describes the forecast ensemble, its modes included."""
+    n, d = points.shape
+    chol = _linalg.cholesky(q_cov)
+    zw = _linalg.solve_lower(chol[None], points)                            # (N, d)
+    cw = _linalg.solve_lower(chol[None], kernels)
+    dist2 = (jnp.sum(zw ** 2, -1)[:, None] + jnp.sum(cw ** 2, -1)[None]
+             - 2.0 * zw @ cw.T)                                             # (N_j, N_i)
+    log_k = -0.5 * jnp.maximum(dist2, 0.0) - jnp.sum(jnp.log(jnp.diagonal(chol)))
+    log_k = jnp.where(jnp.eye(n, dtype=bool), -jnp.inf, log_k)
+    return jnp.sum(logsumexp(log_k, axis=1)) - n * math.log(n - 1)
+
+
+def kernel_prior(model, config, centers, prior_ens, cov, eye, widths) -> list:
+    """Log prior weights of the kernel ``widths`` (``MixtureConfig.kernel_choice``)."""
+    g = len(widths)
+    if config.kernel_choice == "evidence":
+        return [-math.log(g)] * g
+    scores = jnp.stack([loo_score(*_kernel(model, centers, cov, eye, a), prior_ens)
+                        for a in widths])
+    return list(jax.nn.log_softmax(scores))
+
+
+def _kernel_evidence(model, config, y, key, centers, cov, eye, width: float, guide):
+    """The particle components at kernel factor ``width`` (``MixtureConfig.particle_kernel``):
+    their log evidence (N,) (-inf where non-finite) and a posterior draw of each (N, d)."""
+    kernels, q_cov = _kernel(model, centers, cov, eye, width)
+    q_prec = precision(q_cov)
+    log_z, draws, _, _ = _component_evidence(
+        model, y, key, kernels, q_prec, config.iterations, config.proposals, guide)
+    return jnp.where(jnp.isfinite(log_z), log_z, -jnp.inf), draws
 
 
 WILD_QUANTILES = (0.05, 0.95)

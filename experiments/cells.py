@@ -29,13 +29,15 @@ from experiments import harness, interrupt
 
 def checksum(key: str, cell: harness.Cell) -> str:
     """The SHA-256 (hex) of a cell's key and contents: mean (K, d) and finite (K,) with their
-    dtypes and shapes, the seconds, the compile seconds and the batch width."""
+    dtypes and shapes, the seconds, the compile seconds, the batch width and the machine."""
     digest = hashlib.sha256(key.encode())
     for array in (np.asarray(cell.mean), np.asarray(cell.finite)):
         digest.update(f"{array.dtype.str}{array.shape}".encode())
         digest.update(np.ascontiguousarray(array).tobytes())
     digest.update(repr((float(cell.seconds), float(cell.compile_seconds),
                         int(cell.batch))).encode())
+    if cell.machine:  # a cell written before cells recorded their machine keeps its checksum
+        digest.update(cell.machine.encode())
     return digest.hexdigest()
 
 
@@ -76,7 +78,8 @@ class Cache(harness.Cache):
         try:
             with np.load(path) as f:
                 cell = harness.Cell(f["mean"], f["finite"], float(f["seconds"]),
-                                    float(f["compile_seconds"]), int(f["batch"]))
+                                    float(f["compile_seconds"]), int(f["batch"]),
+                                    harness.stored_machine(f))
         except Exception as e:  # noqa: BLE001  (truncated or foreign: zip, key, value errors)
             return self._aside(path, f"cannot be read ({type(e).__name__}: {e})")
         sums = self.checksum_path(case, key)
@@ -94,7 +97,7 @@ class Cache(harness.Cache):
 
     def save(self, case: harness.Case, key: str, cell: harness.Cell) -> None:
         cell = harness.Cell(np.asarray(cell.mean), np.asarray(cell.finite), float(cell.seconds),
-                            float(cell.compile_seconds), int(cell.batch))
+                            float(cell.compile_seconds), int(cell.batch), str(cell.machine))
         path, sums = self.path(case, key), self.checksum_path(case, key)
         with interrupt.WRITING:  # an interrupt waits for the pair of files
             path.parent.mkdir(parents=True, exist_ok=True)

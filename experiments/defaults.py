@@ -65,6 +65,10 @@ CANDIDATES = {
     # the default with each member moved from its Tweedie estimate by the exact flow of a
     # Gaussian posterior, instead of about the centre of the Gaussian linearised there
     "member_flow": _mixture(transport_flow="member"),
+    # the default with the particle reading a mixture over point and kernel components, each
+    # width weighed by how well it describes the forecast and by its evidence
+    # (``MixtureConfig.particle_kernel`` a tuple, ``kernel_choice="loo"``)
+    "kernel_loo": _mixture(particle_kernel=(0.0, 1.0)),
 }
 
 # (problem, runs): the table's columns where the candidates differ most, few runs each; the 20-D
@@ -148,7 +152,8 @@ def main(argv=None):
         for e in entries + ([REFERENCE] if case in table_cases else []):
             outcome = results[(case, e.label)]
             rows.append(harness.describe(case, e, outcome) | harness.summary(outcome, data))
-    record = harness.results_record("defaults", harness.command("defaults", argv), rows)
+    record = harness.results_record("defaults", harness.command("defaults", argv), rows, cache,
+                                    harness.output(args, f"results_{tag}.json"))
     with interrupt.WRITING:
         harness.publish(args, record, page(record, args.candidates),
                         f"results_{tag}.json", tag)

@@ -144,7 +144,7 @@ def main(argv=None):
             rows.append({"case": rows[-1]["case"],
                          "entry": label, "rmse": rmse, "runs": case.runs})
     record = harness.results_record("exact_jumps", harness.command("exact_jumps", argv), rows,
-                                    jump_std=JUMP_STD, grid=list(GRID))
+                                    cache, harness.output(args), jump_std=JUMP_STD, grid=list(GRID))
     with interrupt.WRITING:
         harness.publish(args, record, page(record), "results.json", "jumps")
 

@@ -418,13 +418,15 @@ def program_digest(case: Case, method: csf_jax.Method, model) -> str:
 
 class Cell(NamedTuple):
     """One run of one filter: mean (K, d), finite (K,), seconds of the run, compile seconds of
-    its batch, runs in its batch."""
+    its batch, runs in its batch, and the machine that computed it (``machine_key``; "" for a
+    cell written before cells recorded it)."""
 
     mean: np.ndarray
     finite: np.ndarray
     seconds: float
     compile_seconds: float
     batch: int
+    machine: str = ""
 
 
 class Cache:
@@ -433,6 +435,7 @@ class Cache:
     def __init__(self, root: str | os.PathLike, log=print):
         self.root, self.log = pathlib.Path(root), log
         self.computed: list = []  # (problem, label, run) of every cell computed by this object
+        self.machines: list = []  # Cell.machine of every cell ``run`` took, computed or read
 
     def path(self, case: Case, key: str) -> pathlib.Path:
         return self.root / case.problem / f"{key}.npz"
@@ -444,7 +447,7 @@ class Cache:
         try:
             with np.load(path) as f:
                 return Cell(f["mean"], f["finite"], float(f["seconds"]),
-                            float(f["compile_seconds"]), int(f["batch"]))
+                            float(f["compile_seconds"]), int(f["batch"]), stored_machine(f))
         except Exception as e:  # noqa: BLE001  (truncated or foreign: zip, key, value errors)
             aside = path.with_suffix(".damaged")
             os.replace(path, aside)
@@ -538,12 +541,13 @@ def run(cases, entries, cache: Cache, progress: bool = True) -> dict:
                 compile_s = compute.seconds[len(batch)]
                 for j, r in enumerate(batch):
                     cells[r] = Cell(mean[j], finite[j], seconds / len(batch), compile_s,
-                                    len(batch))
+                                    len(batch), machine_key())
                     cache.save(case, keys[r], cells[r])
                     cache.computed.append((case.problem, entry.label, case.first_run + int(r)))
                 done = [int(r) + case.first_run for r in batch]
                 bar(f"{case.problem} {entry.label} runs {done}: {seconds:.1f} s"
                     + (f" + compile {compile_s:.1f} s" if lo == 0 else ""), len(batch))
+            cache.machines += [c.machine for c in cells]
             steps = cells[0].mean.shape[0]
             out[(case, entry.label)] = Outcome(
                 np.stack([c.mean for c in cells]), np.stack([c.finite for c in cells]),
@@ -602,6 +606,47 @@ def machine() -> dict:
             "devices": sorted({d.device_kind for d in jax.devices()})}
 
 
+MACHINE_FIELDS = ("cpu", "cpu_count", "jax_backend")
+"""What a cell records of the machine that computed it: what a page's header names."""
+
+
+@functools.cache
+def machine_key() -> str:
+    """This machine as a cell records it: ``MACHINE_FIELDS`` of ``machine()``, as JSON."""
+    here = machine()
+    return json.dumps({k: here[k] for k in MACHINE_FIELDS}, sort_keys=True)
+
+
+def stored_machine(npz) -> str:
+    """The machine a cell file (an open ``.npz``) records, or "" where it records none."""
+    return str(npz["machine"]) if "machine" in npz.files else ""
+
+
+def cells_machine(cache: Cache, previous=None) -> dict:
+    """``machine()`` with the header's fields (``MACHINE_FIELDS``) those of the machines that
+    computed the cells ``cache`` gave out, not this one's: a page re-rendered from cached cells
+    names the machine that measured their seconds. A cell without a record is taken to be the
+    machine the results file ``previous`` (the one the new record replaces) names, the machine
+    its block was made on. Cells of several machines: their fields joined by " and "; the count
+    of cells per machine is kept under "cells"."""
+    fallback = None
+    if previous is not None and pathlib.Path(previous).exists():
+        old = read_results(previous)["machine"]
+        fallback = json.dumps({k: old[k] for k in MACHINE_FIELDS}, sort_keys=True)
+    counts: dict = {}
+    for m in cache.machines:
+        m = m or fallback or json.dumps({k: "unrecorded" for k in MACHINE_FIELDS})
+        counts[m] = counts.get(m, 0) + 1
+    here = machine()
+    if not counts:
+        return here
+    found = [json.loads(m) for m in counts]
+    fields = {k: " and ".join(dict.fromkeys(str(f[k]) for f in found)) for k in MACHINE_FIELDS}
+    if len(set(f["cpu_count"] for f in found)) == 1:
+        fields["cpu_count"] = found[0]["cpu_count"]
+    return here | fields | {"cells": counts}
+
+
 def versions() -> dict:
     import flax
     import optax
@@ -610,13 +655,21 @@ def versions() -> dict:
             "optax": optax.__version__, "numpy": np.__version__, "csf_jax": csf_jax.__version__}
 
 
-def results_record(benchmark: str, command: str, rows: list, **extra) -> dict:
+def results_record(benchmark: str, command: str, rows: list, cache: Cache | None = None,
+                   previous=None, **extra) -> dict:
     """A results record of ``benchmark`` (``SCHEMA``): command, date, machine, versions, ``extra``
-    fields, then ``rows`` (one dict per case and filter)."""
+    fields, then ``rows`` (one dict per case and filter). Rows from the cells of ``cache``: the
+    machine is the cells' (``cells_machine``, ``previous`` the results file it replaces)."""
+    here = machine() if cache is None else cells_machine(cache, previous)
     return json.loads(json.dumps(
         {"schema": SCHEMA, "benchmark": benchmark, "command": command,
-         "date": datetime.date.today().isoformat(), "machine": machine(), "versions": versions(),
+         "date": datetime.date.today().isoformat(), "machine": here, "versions": versions(),
          **extra, "rows": rows}, default=float))
+
+
+def output(args, filename: str = "results.json"):
+    """The results file a benchmark's ``publish`` writes (``--out``), or None."""
+    return pathlib.Path(args.out) / filename if getattr(args, "out", None) else None
 
 
 def write_results(path, record: dict) -> dict:

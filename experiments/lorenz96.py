@@ -284,7 +284,8 @@ def main(argv=None):
     cache, rows = cells.Cache(args.cache), []
     if args.study == "adaptive":
         record = harness.results_record("lorenz96", harness.command("lorenz96", argv),
-                                        adaptive_rows(cache, not args.no_progress))
+                                        adaptive_rows(cache, not args.no_progress), cache,
+                                        harness.output(args, "results_adaptive.json"))
         with interrupt.WRITING:
             harness.publish(args, record, adaptive_page(record), "results_adaptive.json",
                             "adaptive")
@@ -292,7 +293,8 @@ def main(argv=None):
     for name in args.setups:
         cases = [dataclasses.replace(c, runs=args.runs) for c in SETUPS[name]]
         rows += setup_rows(name, cases, cache, not args.no_progress, harness.extra_entries(args))
-    record = harness.results_record("lorenz96", harness.command("lorenz96", argv), rows)
+    record = harness.results_record("lorenz96", harness.command("lorenz96", argv), rows, cache,
+                                    harness.output(args))
     with interrupt.WRITING:
         harness.publish(args, record, page(record))
 

@@ -192,10 +192,11 @@ def main(argv=None):
                "results_robustness.json, the page's block and figure.", ROBUST_SETUPS)
     args = p.parse_args(argv)
     cli.check_outputs(p, args, "robustness")
-    found = rows(args.setups, args.runs, cells.Cache(args.cache), not args.no_progress)
+    cache = cells.Cache(args.cache)
+    found = rows(args.setups, args.runs, cache, not args.no_progress)
     record = harness.results_record("lorenz96_robustness",
-                                    harness.command("lorenz96_robustness", argv), found,
-                                    lost_above=LOST, floor=FLOOR)
+                                    harness.command("lorenz96_robustness", argv), found, cache,
+                                    harness.output(args, "results_robustness.json"), lost_above=LOST, floor=FLOOR)
     with interrupt.WRITING:
         harness.publish(args, record, page(record), "results_robustness.json", "robustness")
     if args.page:

@@ -209,7 +209,8 @@ def main(argv=None):
     chosen = [e for e in entries(sf_runs, reference, args.preset) if e.label in args.methods]
     chosen += harness.extra_entries(args)
     cache = args.cache or os.path.join(args.out or tempfile.mkdtemp(prefix="csf_run_"), "cache")
-    results = run_filters(case, chosen, cells.Cache(cache), progress=not args.no_progress)
+    store = cells.Cache(cache)
+    results = run_filters(case, chosen, store, progress=not args.no_progress)
     table = rows(results, [case], chosen)
     print_table(table)
     if any(e.method == "sf" for e in chosen) and len(chosen) > 1:
@@ -219,7 +220,8 @@ def main(argv=None):
     if args.out:
         with interrupt.WRITING:
             harness.write_results(f"{args.out}/results.json", harness.results_record(
-                "run", harness.command("run", argv), table, preset=args.preset))
+                "run", harness.command("run", argv), table, store, harness.output(args),
+                preset=args.preset))
         figures(args.out, case, results, chosen, args.preset)
     if sf_runs is not None and "SF" in args.methods and sf_runs < runs:
         print(f"SF ran on {sf_runs} of {runs} runs (its online training is the slow part on a "

@@ -64,10 +64,12 @@ def main(argv=None):
              for n in args.problems]
     chosen = [e for e in ENTRIES if e.label in args.filters or e.label == "Ref."]
     chosen += harness.extra_entries(args)
-    results = harness.run(cases, chosen, cells.Cache(args.cache), not args.no_progress)
+    cache = cells.Cache(args.cache)
+    results = harness.run(cases, chosen, cache, not args.no_progress)
     rows = main_job.rows(results, cases, chosen)
     record = harness.results_record("small_ensembles", harness.command("small_ensembles", argv),
-                                    rows)
+                                    rows, cache,
+                                    harness.output(args, f"results_N{args.particles}.json"))
     by = {(r["case"]["problem"], r["entry"]): r for r in rows}
     body = [[e.label] + [harness.number(by[(c.problem, e.label)].get("rmse_ratio"))
                          for c in cases] for e in chosen if e.label != "Ref."]

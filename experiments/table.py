@@ -114,10 +114,11 @@ def main(argv=None):
     sf_runs = args.sf_runs or (5 if jax.default_backend() == "cpu" else None)
     cases = [harness.Case(name) for name in args.problems]
     chosen = main_job.entries(sf_runs, preset=args.preset) + harness.extra_entries(args)
-    results = harness.run(cases, chosen, cells.Cache(args.cache), not args.no_progress)
+    cache = cells.Cache(args.cache)
+    results = harness.run(cases, chosen, cache, not args.no_progress)
     rows = main_job.rows(results, cases, chosen)
-    record = harness.results_record("table", harness.command("table", argv), rows,
-                                    preset=args.preset)
+    record = harness.results_record("table", harness.command("table", argv), rows, cache,
+                                    harness.output(args), preset=args.preset)
     if args.out:
         with interrupt.WRITING:
             harness.write_results(os.path.join(args.out, "results.json"), record)

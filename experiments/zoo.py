@@ -128,7 +128,8 @@ def main(argv=None):
         for c, entry in [(case, e) for e in entries] + extra:
             outcome = found[(c, entry.label)]
             rows.append(harness.describe(c, entry, outcome) | harness.summary(outcome, data))
-    record = harness.results_record("zoo", harness.command("zoo", argv), rows)
+    record = harness.results_record("zoo", harness.command("zoo", argv), rows, cache,
+                                    harness.output(args, f"results_N{args.particles}.json"))
     with interrupt.WRITING:
         harness.publish(args, record, page(record), f"results_N{args.particles}.json",
                         f"N{args.particles}")

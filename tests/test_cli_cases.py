@@ -4,6 +4,7 @@ and one line; a bad path or number ends in argparse's one-line error naming the 
 work."""
 
 import importlib
+import json
 import os
 import signal
 import subprocess
@@ -92,6 +93,62 @@ def test_a_cell_without_a_checksum_is_still_checked(tmp_path, capsys, edit):
     err = capsys.readouterr().err
     assert f"warning: cache file {path} {why}; moved it to" in err and len(cache.computed) == 1
     np.testing.assert_array_equal(again, means)
+
+
+# ------------------------------------------------------------------------------------------------
+# The machine a cell was computed on
+# ------------------------------------------------------------------------------------------------
+
+OTHER = json.dumps({"cpu": "Other CPU", "cpu_count": 64, "jax_backend": "cpu"}, sort_keys=True)
+
+
+def _record(cache, previous=None):
+    return harness.results_record("demo", "python -m experiments.demo", [], cache, previous)
+
+
+def test_a_cell_records_its_machine_and_a_record_of_cached_cells_names_it(tmp_path):
+    _, paths = _cached(tmp_path)
+    here = json.loads(harness.machine_key())
+    assert _record(_rerun(tmp_path)[1])["machine"]["cpu"] == here["cpu"]
+    for path in paths:  # cells computed on another machine, checksums and all
+        with np.load(path) as f:
+            cell = harness.Cell(f["mean"], f["finite"], float(f["seconds"]),
+                                float(f["compile_seconds"]), int(f["batch"]), OTHER)
+        key = path.stem
+        path.with_suffix(".sha256").write_text(cells.checksum(key, cell) + "\n")
+        _rewrite(path, machine=np.asarray(OTHER))
+    again, cache = _rerun(tmp_path)
+    machine = _record(cache)["machine"]
+    assert cache.computed == [] and machine["cpu"] == "Other CPU"
+    assert machine["cells"] == {OTHER: 2}
+    paths[0].unlink()  # one cell recomputed here: the header names both machines
+    _, cache = _rerun(tmp_path)
+    machine = _record(cache)["machine"]
+    assert sorted(machine["cpu"].split(" and ")) == sorted(["Other CPU", here["cpu"]])
+    assert sorted(machine["cells"].values()) == [1, 1]
+
+
+def test_a_relabelled_machine_fails_the_checksum(tmp_path, capsys):
+    _, paths = _cached(tmp_path)
+    _rewrite(paths[0], machine=np.asarray(OTHER))
+    _, cache = _rerun(tmp_path)
+    assert "fails its checksum" in capsys.readouterr().err and len(cache.computed) == 1
+
+
+def test_cells_without_a_machine_are_the_replaced_record_s(tmp_path):
+    """Cells written before cells recorded their machine: the machine the block they made
+    names (the results file the new record replaces), else "unrecorded"."""
+    harness.run([CASE], ENKF, harness.Cache(tmp_path), progress=False)
+    for path in (tmp_path / "double_well").glob("*.npz"):
+        with np.load(path) as f:
+            arrays = {k: f[k] for k in f.files if k != "machine"}
+        np.savez(path, **arrays)
+    _, cache = _rerun(tmp_path)
+    assert _record(cache)["machine"]["cpu"] == "unrecorded"
+    old = _record(None)
+    old["machine"] |= json.loads(OTHER)
+    harness.write_results(tmp_path / "results.json", old)
+    assert _record(cache, tmp_path / "results.json")["machine"]["cpu"] == "Other CPU"
 
 
 # ------------------------------------------------------------------------------------------------

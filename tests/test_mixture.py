@@ -161,6 +161,56 @@ def test_particle_kernels_reach_an_observation_no_particle_explains():
     assert abs(float(near_kernels.particle_weight) - float(near_points.particle_weight)) < 0.05
 
 
+def test_loo_score_is_the_leave_one_out_log_density():
+    """Against ``multivariate_normal.logpdf`` term by term (up to the ``d/2 log 2 pi`` per point
+    that every width shares)."""
+    from jax.scipy.special import logsumexp
+    from jax.scipy.stats import multivariate_normal as mvn
+
+    a, b, c = jax.random.split(jax.random.key(0), 3)
+    n, d = 7, 3
+    kernels, points = jax.random.normal(a, (n, d)), jax.random.normal(b, (n, d))
+    root = jax.random.normal(c, (d, d))
+    cov = root @ root.T + jnp.eye(d)
+    want = sum(float(logsumexp(jnp.array([mvn.logpdf(points[j], kernels[i], cov)
+                                          for i in range(n) if i != j]))) - math.log(n - 1)
+               for j in range(n)) + n * d / 2 * math.log(2 * math.pi)
+    np.testing.assert_allclose(float(mixture.loo_score(kernels, cov, points)), want, rtol=1e-5)
+
+
+@pytest.mark.parametrize("clusters, want", [(2, 0.0), (1, 1.0)])
+def test_the_forecast_picks_the_kernel_width(clusters, want):
+    """50 members in d = 1, process noise std 0.016. Two tight modes at -5 and +5: Silverman's kernels
+    (0.48 ensemble spreads, 2.4 here) would fill the gap between them, and the points fit
+    better. One mode of std 1: the points, 0.016 wide, leave the members between them
+    unexplained, and the kernels fit better."""
+    model = csf_jax.problems.get("double_well", process_std=0.05)
+    k1, k2 = jax.random.split(jax.random.key(3))
+    n = 50
+    signs = jnp.where(jnp.arange(n) % 2 == 0, -5.0, 5.0) if clusters == 2 else 0.0
+    centers = (signs + (0.1 if clusters == 2 else 1.0) * jax.random.normal(k1, (n,)))[:, None]
+    q = float(mixture.process_cov(model, jnp.float32)[0, 0])
+    points = centers + math.sqrt(q) * jax.random.normal(k2, (n, 1))
+    cov = jnp.cov(points.T).reshape(1, 1)
+    config = MixtureConfig(particle_kernel=(0.0, 1.0))
+    prior = mixture.kernel_prior(model, config, centers, points, cov, jnp.eye(1), (0.0, 1.0))
+    assert (0.0, 1.0)[int(np.argmax(prior))] == want and max(prior) > math.log(0.99)
+
+
+def test_a_one_width_tuple_is_the_width():
+    model = csf_jax.problems.get("double_well")
+    key, centers, prior_ens, cov = _spread_particles(model.process_std)
+
+    def select(kernel, choice="loo"):
+        config = MixtureConfig(shock_hazard=0.0, particle_kernel=kernel, kernel_choice=choice)
+        return mixture.select(model, config, key, jnp.array([8.0]), centers, prior_ens, cov,
+                              0.0, 2.0, 1.0)
+
+    np.testing.assert_array_equal(np.asarray(select((1.0,)).draws), np.asarray(select(1.0).draws))
+    for choice in ("loo", "evidence"):  # the kernels' reach is kept (test above)
+        assert float(select((0.0, 1.0), choice).particle_weight) > 0.5, choice
+
+
 @pytest.mark.slow
 def test_shock_component_takes_over_after_a_jump():
     """An observation far outside the ensemble's reach: the shock components win the evidence."""
@@ -289,7 +339,9 @@ def test_bad_mixture_config_is_refused():
                 dict(particle_logodds=float("nan")), dict(particle_ess=float("inf")),
                 dict(shock_span="all"), dict(particle_ess=-0.1), dict(particle_kernel=1.5),
                 dict(particle_kernel=-0.1),
-                dict(particle_kernel=float("nan")), dict(ensemble_draws="fresh"),
+                dict(particle_kernel=float("nan")), dict(particle_kernel=()),
+                dict(particle_kernel=(0.0, 2.0)), dict(kernel_choice="cv"),
+                dict(ensemble_draws="fresh"),
                 dict(transport_levels=-1), dict(transport_levels=True),
                 dict(transport_levels=2.0), dict(transport_iterations=0),
                 dict(transport_flow="exact"), dict(transport_flow=None),
